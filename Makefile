@@ -1,0 +1,27 @@
+# The two sacred commands: `make demo` and `make test` (each sets up .venv on first use).
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.rtctl-installed
+
+.PHONY: demo test bench docs clean
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/rtctl run line-bimorph-5 --out out/demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) bench/loop.py
+
+docs: $(STAMP)
+	$(PY) -m rtctl.schema > docs/scene.md
+
+clean:
+	rm -rf out .pytest_cache .hypothesis

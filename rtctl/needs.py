@@ -1,0 +1,99 @@
+"""What a scene needs, and what it leaves out.
+
+Pure bookkeeping on the validated scene: imports nothing. :func:`rtctl.rig.build` constructs,
+imports and compiles exactly the components listed here, and ``rtctl check`` prints them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+#: component -> (what it is, the modules it brings in)
+COMPONENTS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "safety.limiter": ("final limiter: voltage, slew/current, temperature (always)", ("rtctl.safety",)),
+    "dsp.oscillator": ("phase-continuous oscillator bank for tones and beat pairs", ("rtctl.dsp",)),
+    "dsp.pulse": ("pulse trains for binary pins", ("rtctl.dsp",)),
+    "dsp.lockin": ("lock-in demodulation of the sensed currents", ("rtctl.dsp",)),
+    "plant.bimorph": ("finite-element bimorph with amplifier and current sense (simulated)", ("rtctl.plant",)),
+    "plant.finger": ("generalized Maxwell finger load at each tip (simulated)", ("rtctl.plant",)),
+    "plant.pvdf": ("PVDF film cells on a plate (simulated)", ("rtctl.plant",)),
+    "plant.em": ("electromagnetic pin (simulated)", ("rtctl.plant",)),
+    "plant.solenoid": ("solenoid pin with end stops (simulated)", ("rtctl.plant",)),
+    "plant.dot": ("latching Dot Braille pin (simulated)", ("rtctl.plant",)),
+    "plant.sma": ("SMA antagonistic taxel (simulated)", ("rtctl.plant",)),
+    "selfsense": ("transfer-matrix self-sensing observer", ("rtctl.selfsense",)),
+    "control": ("closed-loop amplitude control to the perception targets", ("rtctl.control",)),
+    "render": ("image rendering to per-pin stimuli", ("rtctl.render", "cv2")),
+    "io.sim": ("simulated rig behind the block I/O contract", ("rtctl.io.sim",)),
+    "io.audio": ("audio interface", ("rtctl.io.audio", "sounddevice")),
+    "io.daq": ("DAQ", ("rtctl.io.daq", "nidaqmx")),
+    "io.serial": ("serial pin controller", ("rtctl.io.serial", "serial")),
+    "io.replay": ("replay of a recorded trace", ("rtctl.io.replay",)),
+}
+
+#: components that exist in this version of rtctl; the others are refused with a clear message.
+AVAILABLE = frozenset({
+    "safety.limiter", "dsp.oscillator", "dsp.pulse", "dsp.lockin",
+    "plant.bimorph", "plant.finger", "io.sim",
+})
+
+
+@dataclass(frozen=True)
+class Needs:
+    """Components a scene needs (with the reason) and the ones it leaves out."""
+
+    needed: dict[str, str]
+    left_out: tuple[str, ...]
+
+    @property
+    def modules(self) -> tuple[str, ...]:
+        """Modules a run of this scene imports."""
+        return tuple(sorted({m for c in self.needed for m in COMPONENTS[c][1]}))
+
+    @property
+    def unavailable(self) -> tuple[str, ...]:
+        return tuple(c for c in self.needed if c not in AVAILABLE)
+
+    def to_dict(self) -> dict:
+        return {
+            "needs": [{"component": c, "what": COMPONENTS[c][0], "why": why} for c, why in self.needed.items()],
+            "leaves_out": [{"component": c, "what": COMPONENTS[c][0]} for c in self.left_out],
+            "unavailable": list(self.unavailable),
+        }
+
+
+def needs(scene) -> Needs:
+    """The components ``scene`` uses, each with the key that asks for it."""
+    need: dict[str, str] = {"safety.limiter": "every output passes the limiter"}
+    st = scene.stimulus
+    if st.kind == "tones":
+        if st.tones:
+            need["dsp.oscillator"] = f"stimulus.kind = 'tones' ({len(st.tones)} tone(s))"
+    else:
+        need["render"] = f"stimulus.kind = {st.kind!r}"
+    if scene.control.mode == "closed":
+        need["selfsense"] = "control.mode = 'closed' estimates the tips from the currents"
+        need["dsp.lockin"] = "control.mode = 'closed' demodulates the sensed currents"
+        need["control"] = "control.mode = 'closed'"
+    backend = scene.io.backend
+    need[f"io.{backend}"] = f"io.backend = {backend!r}"
+    if backend == "sim":
+        for a in scene.actuator:
+            need.setdefault(f"plant.{a.type}", f"actuator {a.name!r} is type {a.type!r} (io.backend = 'sim')")
+        if scene.finger.contact:
+            need["plant.finger"] = "finger.contact = true (io.backend = 'sim')"
+    left = tuple(c for c in COMPONENTS if c not in need)
+    return Needs(need, left)
+
+
+def unavailable_message(component: str, why: str) -> str:
+    """One line telling the user that ``component`` is not in this version, and what to do."""
+    fixes = {
+        "selfsense": "use control.mode = 'open' for now",
+        "dsp.lockin": "use control.mode = 'open' for now",
+        "control": "use control.mode = 'open' for now",
+        "render": "use stimulus.kind = 'tones' for now",
+    }
+    fix = fixes.get(component, "use io.backend = 'sim' with a bimorph actuator for now"
+                    if component.startswith(("io.", "plant.")) else "")
+    return f"{why} needs {COMPONENTS[component][0]} ({component}), which this version of rtctl does not have yet; {fix}"

@@ -1,0 +1,385 @@
+"""Scenes: TOML files validated into frozen objects, with ``--set`` overrides.
+
+>>> from rtctl import scene
+>>> s = scene.load("line-bimorph-5", ["timing.duration=0.5"])
+>>> s.timing.duration
+0.5
+>>> s.actuator[0].beam.layers[0].material
+'PZT-5A'
+
+Every error is a :class:`~rtctl.errors.SceneError` whose one-line message names the file, the
+key, the offending value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from .errors import SceneError
+from .schema import REQUIRED, SCENE, Key, Table
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on 3.10 only
+    import tomli as tomllib
+
+BUNDLED_DIR = Path(__file__).with_name("scenes")
+# Names only: the values live with the physics in rtctl.plant.materials (kept light here so
+# validating a scene never imports a model).
+BUILTIN_MATERIALS = ("PZT-5A", "PZT-5H", "PVDF")
+
+
+class Frozen(Mapping):
+    """A read-only mapping with attribute access; nested tables are Frozen, lists tuples."""
+
+    __slots__ = ("_d",)
+
+    def __init__(self, data: Mapping[str, Any]):
+        object.__setattr__(self, "_d", {k: _freeze(v) for k, v in data.items()})
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return self._d[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("scene objects are frozen; use --set or scene.load(..., overrides)")
+
+    def __getitem__(self, key: str) -> Any:
+        return self._d[key]
+
+    def __iter__(self):
+        return iter(self._d)
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def __repr__(self) -> str:
+        return f"Frozen({self._d!r})"
+
+    def to_dict(self) -> dict[str, Any]:
+        """A plain, JSON-friendly copy."""
+        return {k: _thaw(v) for k, v in self._d.items()}
+
+
+def _freeze(v: Any) -> Any:
+    if isinstance(v, Mapping):
+        return Frozen(v)
+    if isinstance(v, (list, tuple)):
+        return tuple(_freeze(x) for x in v)
+    return v
+
+
+def _thaw(v: Any) -> Any:
+    if isinstance(v, Frozen):
+        return v.to_dict()
+    if isinstance(v, tuple):
+        return [_thaw(x) for x in v]
+    return v
+
+
+class Scene(Frozen):
+    """A validated scene. ``source`` is where it came from, ``overrides`` the ``--set`` list."""
+
+    __slots__ = ("source", "overrides")
+
+    def __init__(self, data: Mapping[str, Any], source: str, overrides: Sequence[str] = ()):
+        super().__init__(data)
+        object.__setattr__(self, "source", source)
+        object.__setattr__(self, "overrides", tuple(overrides))
+
+    def group(self, name: str) -> Frozen:
+        """The actuator group called ``name``."""
+        for a in self.actuator:
+            if a.name == name:
+                return a
+        raise SceneError(f"{self.source}: no actuator named {name!r} (have {[a.name for a in self.actuator]})")
+
+    @property
+    def n_channels(self) -> int:
+        return sum(a.grid[0] * a.grid[1] for a in self.actuator)
+
+
+# ----------------------------------------------------------------------------- finding files
+
+
+def bundled() -> list[str]:
+    """Names of the scenes shipped with rtctl."""
+    return sorted(p.stem for p in BUNDLED_DIR.glob("*.toml"))
+
+
+def resolve(source: str | Path) -> Path:
+    """A path as given if it exists, else a bundled scene by name (with or without .toml)."""
+    p = Path(source)
+    if p.is_file():
+        return p
+    q = BUNDLED_DIR / (p.name if p.suffix == ".toml" else p.name + ".toml")
+    if q.is_file() and p.parent == Path("."):
+        return q
+    hint = difflib.get_close_matches(p.stem, bundled(), n=1)
+    more = f" (did you mean {hint[0]!r}?)" if hint else f" (bundled: {', '.join(bundled())})"
+    raise SceneError(f"{source}: no such scene file or bundled scene{more}")
+
+
+def load(source: str | Path, overrides: Sequence[str] = ()) -> Scene:
+    """Read, override and validate a scene.
+
+    Parameters
+    ----------
+    source : str or Path
+        A TOML file, or the name of a bundled scene (``rtctl scenes`` lists them).
+    overrides : sequence of str
+        ``path.to.key=VALUE`` items applied before validation (see :func:`apply_override`).
+    """
+    path = resolve(source)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{path}: not valid TOML: {e}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise SceneError(f"{path}: cannot read: {e}") from None
+    for item in overrides:
+        apply_override(data, item, origin=str(path))
+    return Scene(validate(data, str(path)), str(path), overrides)
+
+
+def loads(text: str, overrides: Sequence[str] = (), origin: str = "<scene>") -> Scene:
+    """Like :func:`load` for TOML text."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{origin}: not valid TOML: {e}") from None
+    for item in overrides:
+        apply_override(data, item, origin=origin)
+    return Scene(validate(data, origin), origin, overrides)
+
+
+# ----------------------------------------------------------------------------- overrides
+
+
+def parse_value(text: str) -> Any:
+    """A TOML literal (``1e-3``, ``[1, 2]``, ``true``, ``"x"``, ``{k = 1}``), else the bare string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_override(data: dict, item: str, origin: str = "--set") -> None:
+    """Apply one ``path.to.key=VALUE`` to the raw scene dict in place.
+
+    Path parts walk tables by key, arrays of tables by name (``actuator.lateral``, matching the
+    item's ``name``) or by index (``stimulus.tones.0``). Missing tables are created, so any key
+    can be added; validation then checks it like a key from the file.
+    """
+    if "=" not in item:
+        raise SceneError(f"--set {item!r}: expected path.to.key=VALUE")
+    path, _, raw = item.partition("=")
+    parts = [p for p in path.strip().split(".")]
+    if not all(parts):
+        raise SceneError(f"--set {item!r}: empty part in key path {path!r}")
+    value = parse_value(raw.strip())
+    node: Any = data
+    for i, part in enumerate(parts[:-1]):
+        here = ".".join(parts[: i + 1])
+        if isinstance(node, list):
+            node = _list_item(node, part, here, item)
+        elif isinstance(node, dict):
+            if part not in node:
+                node[part] = {}
+            node = node[part]
+        else:
+            raise SceneError(f"--set {item!r}: {here} is a value, not a table")
+    last = parts[-1]
+    if isinstance(node, list):
+        idx = _list_index(node, last, path, item)
+        node[idx] = value
+    elif isinstance(node, dict):
+        node[last] = value
+    else:
+        raise SceneError(f"--set {item!r}: {'.'.join(parts[:-1])} is a value, not a table")
+
+
+def _list_index(items: list, part: str, here: str, item: str) -> int:
+    if part.lstrip("-").isdigit():
+        idx = int(part)
+        if -len(items) <= idx < len(items):
+            return idx
+        raise SceneError(f"--set {item!r}: {here}: index {idx} out of range (have {len(items)} items)")
+    names = [x.get("name") for x in items if isinstance(x, dict)]
+    if part in names:
+        return names.index(part)
+    raise SceneError(f"--set {item!r}: no item named {part!r} at {here} (have {names})")
+
+
+def _list_item(items: list, part: str, here: str, item: str) -> Any:
+    return items[_list_index(items, part, here, item)]
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def validate(data: Mapping[str, Any], origin: str) -> dict[str, Any]:
+    """Check ``data`` against :data:`rtctl.schema.SCENE`; return it with defaults filled in."""
+    out = _table(SCENE, data, "", origin)
+    _cross_checks(out, origin)
+    return out
+
+
+def _fail(origin: str, path: str, value: Any, problem: str) -> SceneError:
+    return SceneError(f"{origin}: {path} = {_show(value)}: {problem}")
+
+
+def _show(v: Any) -> str:
+    s = repr(v)
+    return s if len(s) <= 60 else s[:57] + "..."
+
+
+def _table(spec: Table, data: Any, path: str, origin: str, required_ok: bool = False) -> dict:
+    if not isinstance(data, Mapping):
+        raise _fail(origin, path or "<top>", data, "must be a table")
+    unknown = [k for k in data if k not in spec.keys]
+    if unknown:
+        k = unknown[0]
+        full = f"{path}.{k}" if path else k
+        hint = difflib.get_close_matches(k, list(spec.keys), n=1)
+        more = f" (did you mean {(path + '.' if path else '') + hint[0]!r}?)" if hint else (
+            f" (allowed: {', '.join(spec.keys)})"
+        )
+        raise SceneError(f"{origin}: unknown key {full!r}{more}")
+    out: dict[str, Any] = {}
+    for name, sub in spec.keys.items():
+        full = f"{path}.{name}" if path else name
+        if isinstance(sub, Table):
+            out[name] = _subtable(sub, data.get(name), full, origin)
+        elif name in data:
+            out[name] = _value(sub, data[name], full, origin)
+        elif sub.default is REQUIRED and not required_ok:
+            raise SceneError(f"{origin}: missing required key {full!r} ({sub.doc})")
+        elif sub.default is not REQUIRED:
+            out[name] = sub.default
+    return out
+
+
+def _subtable(spec: Table, data: Any, path: str, origin: str) -> Any:
+    if spec.many:
+        if data is None:
+            if not spec.optional:
+                raise SceneError(f"{origin}: missing required {path!r} ({spec.doc})")
+            return []
+        if not isinstance(data, list):
+            raise _fail(origin, path, data, "must be an array of tables")
+        if len(data) < spec.min_items:
+            raise _fail(origin, path, data, f"needs at least {spec.min_items} item(s)")
+        return [_table(spec, x, f"{path}.{_item_name(x, i)}", origin) for i, x in enumerate(data)]
+    if spec.named:
+        if data is None:
+            return {}
+        if not isinstance(data, Mapping):
+            raise _fail(origin, path, data, "must be a table of named tables")
+        return {
+            n: _table(spec, t, f"{path}.{n}", origin, required_ok=n in BUILTIN_MATERIALS)
+            for n, t in data.items()
+        }
+    if data is None:
+        if not spec.optional:
+            raise SceneError(f"{origin}: missing required table [{path}] ({spec.doc})")
+        data = {}
+    return _table(spec, data, path, origin)
+
+
+def _item_name(x: Any, i: int) -> str:
+    """How errors (and ``--set``) address item ``i`` of an array of tables: by name if it has one."""
+    name = x.get("name") if isinstance(x, Mapping) else None
+    return name if isinstance(name, str) and name and "." not in name else str(i)
+
+
+def _value(spec: Key, v: Any, path: str, origin: str) -> Any:
+    kind = spec.kind
+    if kind in ("floats", "ints"):
+        if not isinstance(v, list):
+            raise _fail(origin, path, v, f"must be a list of {'numbers' if kind == 'floats' else 'integers'}")
+        if spec.length is not None and len(v) != spec.length:
+            raise _fail(origin, path, v, f"must have exactly {spec.length} items")
+        if len(v) < spec.min_items or (spec.max_items is not None and len(v) > spec.max_items):
+            raise _fail(origin, path, v, f"must have {spec.min_items} to {spec.max_items} items")
+        one = Key(kind[:-1], unit=spec.unit, lo=spec.lo, hi=spec.hi, open_lo=spec.open_lo)
+        return [_scalar(one, x, f"{path}.{i}", origin) for i, x in enumerate(v)]
+    return _scalar(spec, v, path, origin)
+
+
+def _scalar(spec: Key, v: Any, path: str, origin: str) -> Any:
+    kind = spec.kind
+    if kind == "bool":
+        if not isinstance(v, bool):
+            raise _fail(origin, path, v, "must be true or false")
+        return v
+    if kind == "str":
+        if not isinstance(v, str):
+            raise _fail(origin, path, v, "must be a string")
+        if spec.choices and v not in spec.choices:
+            raise _fail(origin, path, v, f"must be one of {', '.join(spec.choices)}")
+        return v
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise _fail(origin, path, v, f"must be {'an integer' if kind == 'int' else 'a number'}")
+    if kind == "int":
+        if isinstance(v, float):
+            if not v.is_integer():
+                raise _fail(origin, path, v, "must be an integer")
+            v = int(v)
+    else:
+        v = float(v)
+        if math.isnan(v):
+            raise _fail(origin, path, v, "must be a number, not nan")
+    lo, hi = spec.lo, spec.hi
+    bad = (lo is not None and (v < lo or (spec.open_lo and v == lo))) or (hi is not None and v > hi)
+    if bad:
+        unit = f" {spec.unit}" if spec.unit else ""
+        raise _fail(origin, path, v, f"must be in {spec.describe_range()}{unit}")
+    return v
+
+
+def _cross_checks(s: dict, origin: str) -> None:
+    t = s["timing"]
+    if t["duration"] * t["fs"] < t["block"]:
+        raise _fail(origin, "timing.duration", t["duration"], f"shorter than one block ({t['block']} samples at {t['fs']:g} Hz)")
+    names = [a["name"] for a in s["actuator"]]
+    for i, a in enumerate(s["actuator"]):
+        p = f"actuator.{a['name']}"
+        if names.count(a["name"]) > 1:
+            raise _fail(origin, f"actuator.{i}.name", a["name"], "names must be unique")
+        if "." in a["name"] or not a["name"]:
+            raise _fail(origin, f"actuator.{i}.name", a["name"], "must be non-empty without dots")
+        segs = a["beam"]["segments"]
+        if abs(sum(segs) - 1.0) > 1e-9:
+            raise _fail(origin, f"{p}.beam.segments", segs, f"fractions must sum to 1 (sum {sum(segs):.6g})")
+        for j, layer in enumerate(a["beam"]["layers"]):
+            m = layer["material"]
+            if m not in BUILTIN_MATERIALS and m not in s["materials"]:
+                known = ", ".join(BUILTIN_MATERIALS + tuple(s["materials"]))
+                raise _fail(origin, f"{p}.beam.layers.{j}.material", m, f"unknown material (known: {known}; add a [materials.{m}] table)")
+        if a["support"]["type"] == "elastic" and math.isinf(a["support"]["k"]) and math.isinf(a["support"]["k_rot"]):
+            raise _fail(origin, f"{p}.support.k", a["support"]["k"], "an elastic support needs a finite k or k_rot")
+    nyq = t["fs"] / 2
+    for i, tone in enumerate(s["stimulus"]["tones"]):
+        p = f"stimulus.tones.{i}"
+        group = tone["actuator"] or names[0]
+        if group not in names:
+            raise _fail(origin, f"{p}.actuator", group, f"no such actuator group (have {', '.join(names)})")
+        tone["actuator"] = group
+        grid = s["actuator"][names.index(group)]["grid"]
+        if tone["channel"] >= grid[0] * grid[1]:
+            raise _fail(origin, f"{p}.channel", tone["channel"], f"group {group!r} has channels 0..{grid[0] * grid[1] - 1}")
+        top = tone["freq"] + tone["beat"] / 2
+        if top >= nyq:
+            raise _fail(origin, f"{p}.freq", tone["freq"], f"tone reaches {top:g} Hz, above Nyquist ({nyq:g} Hz)")
+        if tone["freq"] - tone["beat"] / 2 <= 0:
+            raise _fail(origin, f"{p}.beat", tone["beat"], f"must be below 2 * freq ({2 * tone['freq']:g} Hz)")
+        if tone["start"] >= t["duration"]:
+            raise _fail(origin, f"{p}.start", tone["start"], f"after the end of the run ({t['duration']:g} s)")

@@ -1,0 +1,147 @@
+"""Run traces: one fixed-size record per block, appended in chunks.
+
+A trace is a directory with ``trace.json`` (the layout: record dtype, signal names, units,
+channel names, fs, block) and ``blocks.bin`` (records back to back). The writer keeps a
+preallocated chunk of records and appends it to the file when full, on :meth:`TraceWriter.flush`
+and on close, so Ctrl-C or an exception keeps every finished block readable; the reader maps the
+file and ignores a trailing partial record, so even a killed process leaves a readable trace.
+
+>>> import tempfile
+>>> d = tempfile.mkdtemp()
+>>> w = TraceWriter(d, {"drive": ("V", 2)}, fs=1000.0, block=4, channels=["a", "b"])
+>>> r = w.next(); r["drive"][:] = 1.5; r["status"] = 0
+>>> w.close()
+>>> TraceReader(d).signal("drive").shape
+(2, 4)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+HEADER_FIELDS = [("block", "<i8"), ("status", "<i4"), ("compute_us", "<f4")]
+
+
+class TraceWriter:
+    """Append per-block records.
+
+    Parameters
+    ----------
+    path : str or Path
+        Directory to create (or reuse: an existing trace there is replaced).
+    signals : dict
+        ``name -> (unit, rows)`` for per-sample signals stored as float32 ``(rows, block)``, or
+        ``name -> (unit, rows, 0)`` for one float32 value per row and block.
+    fs, block : float, int
+        Sample rate and block length.
+    channels : list of str
+        Channel names, for readers.
+    chunk : int
+        Records buffered before an append.
+    """
+
+    def __init__(self, path, signals: dict, fs: float, block: int, channels, chunk: int = 64,
+                 meta: dict | None = None):
+        self.path = Path(path)
+        self.path.mkdir(parents=True, exist_ok=True)
+        fields = list(HEADER_FIELDS)
+        per_block = []
+        for name, spec in signals.items():
+            unit, rows = spec[0], spec[1]
+            if len(spec) > 2 and spec[2] == 0:
+                fields.append((name, "<f4", (rows,)))
+                per_block.append(name)
+            else:
+                fields.append((name, "<f4", (rows, block)))
+        self.dtype = np.dtype(fields)
+        self._buf = np.zeros(chunk, dtype=self.dtype)
+        self._n = 0
+        self.blocks = 0
+        layout = {
+            "format": "rtctl-trace-1",
+            "dtype": [list(f) if len(f) == 2 else [f[0], f[1], list(f[2])] for f in fields],
+            "units": {name: spec[0] for name, spec in signals.items()},
+            "per_block": per_block,
+            "fs": fs,
+            "block": block,
+            "channels": list(channels),
+            "meta": meta or {},
+        }
+        (self.path / "trace.json").write_text(json.dumps(layout, indent=1))
+        self._f = open(self.path / "blocks.bin", "wb")
+
+    def next(self) -> np.void:
+        """The next record to fill (a view into the chunk buffer); flushes a full chunk first."""
+        if self._n == len(self._buf):
+            self.flush()
+        rec = self._buf[self._n]
+        rec["block"] = self.blocks
+        self._n += 1
+        self.blocks += 1
+        return rec
+
+    def flush(self) -> None:
+        """Append the buffered records to the file."""
+        if self._n:
+            self._f.write(memoryview(self._buf[: self._n]).cast("B"))
+            self._f.flush()
+            self._n = 0
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self.flush()
+            os.fsync(self._f.fileno())
+            self._f.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class TraceReader:
+    """Read a trace written by :class:`TraceWriter` (complete records only)."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        try:
+            self.layout = json.loads((self.path / "trace.json").read_text())
+        except (OSError, ValueError) as e:
+            raise FileNotFoundError(f"{self.path}: not a readable rtctl trace ({e})") from None
+        fields = [tuple(f) if len(f) == 2 else (f[0], f[1], tuple(f[2])) for f in self.layout["dtype"]]
+        self.dtype = np.dtype(fields)
+        size = (self.path / "blocks.bin").stat().st_size
+        self.n_blocks = size // self.dtype.itemsize
+        if self.n_blocks:
+            self.records = np.memmap(self.path / "blocks.bin", dtype=self.dtype, mode="r", shape=(self.n_blocks,))
+        else:
+            self.records = np.zeros(0, dtype=self.dtype)
+        self.fs = float(self.layout["fs"])
+        self.block = int(self.layout["block"])
+        self.channels = self.layout["channels"]
+        self.units = self.layout["units"]
+
+    def signal(self, name: str) -> np.ndarray:
+        """A per-sample signal as float64 ``(rows, n_blocks * block)``, or a per-block one as
+        ``(rows, n_blocks)``."""
+        a = np.asarray(self.records[name], dtype=float)
+        if name in self.layout["per_block"]:
+            return a.T.copy()
+        return a.transpose(1, 0, 2).reshape(a.shape[1], -1)
+
+    @property
+    def status(self) -> np.ndarray:
+        return np.asarray(self.records["status"])
+
+    @property
+    def compute_us(self) -> np.ndarray:
+        return np.asarray(self.records["compute_us"], dtype=float)
+
+    def time(self) -> np.ndarray:
+        """Sample times, s."""
+        return np.arange(self.n_blocks * self.block) / self.fs
