@@ -1,0 +1,111 @@
+"""The final limiter against closed forms and its naive twin."""
+
+import numpy as np
+import pytest
+
+import naive_loop
+from rtctl import safety
+from rtctl.safety import LIMIT_SLEW, LIMIT_VOLTAGE, NONFINITE, OVERTEMP, Limiter
+
+
+def make(n=3, fs=48000.0, **kw):
+    args = dict(max_voltage=100.0, slew=1e6, current=0.05, capacitance=10e-9, temperature=80.0,
+                ambient=25.0, loss_tangent=0.02, thermal_resistance=150.0, thermal_tau=20.0)
+    args.update(kw)
+    args["max_voltage"] = np.broadcast_to(args["max_voltage"], (n,))
+    return Limiter(fs, **args)
+
+
+def test_kernel_matches_naive_twin_on_random_requests():
+    rng = np.random.default_rng(0)
+    lim, ref = make(4, slew=2e6, current=1e-2), make(4, slew=2e6, current=1e-2)
+    for k in range(20):
+        x = rng.normal(0, 80, (4, 37))
+        x[rng.random(x.shape) < 0.01] = np.nan
+        if k == 15:
+            lim.shutdown(50), ref.shutdown(50)
+        y = x.copy()
+        s1 = lim.process(x)
+        s2 = naive_loop.limit_block(y, *ref.args)
+        assert s1 == s2
+        np.testing.assert_allclose(x, y, rtol=1e-13, atol=1e-12)
+    np.testing.assert_array_equal(lim.counts, ref.counts)
+    np.testing.assert_allclose(lim.state, ref.state, rtol=1e-12)
+
+
+def test_nan_and_inf_become_zero_and_raise_the_fault_bit():
+    lim = make(1)
+    x = np.array([[np.nan, np.inf, -np.inf]])
+    s = lim.process(x)
+    assert s & NONFINITE and s & safety.FAULTS
+    assert np.all(x == 0.0)
+
+
+def test_voltage_is_clipped_and_counted():
+    lim = make(1, max_voltage=10.0, slew=1e12, current=1e6)
+    x = np.array([[5.0, 20.0, -30.0, 9.0]])
+    assert lim.process(x) == LIMIT_VOLTAGE
+    assert x.tolist() == [[5.0, 10.0, -10.0, 9.0]]
+    assert lim.counts[0, 0] == 2
+
+
+def test_current_limit_is_a_slope_limit_on_the_capacitor():
+    # I = C dV/dt (a piezo is a capacitor): a step request must never draw more than I_max.
+    fs, C, imax = 48000.0, 100e-9, 0.02
+    lim = make(1, fs=fs, capacitance=C, current=imax, slew=1e9)
+    x = np.full((1, 400), 100.0)
+    assert lim.process(x) & LIMIT_SLEW
+    i = C * np.diff(np.r_[0.0, x[0]]) * fs
+    assert i.max() == pytest.approx(imax, rel=1e-12)
+    # the closed form of a rate-limited step: a straight line until it reaches the request
+    n_ramp = int(np.ceil(100.0 / (imax / C / fs)))
+    np.testing.assert_allclose(x[0, : n_ramp - 1], (imax / C / fs) * np.arange(1, n_ramp), rtol=1e-12)
+    assert x[0, -1] == 100.0
+
+
+def test_dielectric_heating_reaches_the_closed_form_steady_state():
+    # Sine of amplitude V at f: P = tan(d) w C V^2 / 2; T_ss = T_amb + R_th P.
+    fs, f, V, C, tand, rth, tau = 48000.0, 500.0, 100.0, 200e-9, 0.02, 150.0, 0.05
+    lim = make(1, fs=fs, capacitance=C, loss_tangent=tand, thermal_resistance=rth, thermal_tau=tau,
+               temperature=1000.0, slew=1e9, current=10.0, max_voltage=200.0)
+    n = int(fs * 20 * tau)  # 20 time constants
+    t = np.arange(n) / fs
+    x = (V * np.sin(2 * np.pi * f * t))[None, :].copy()
+    for i in range(0, n, 480):
+        lim.process(x[:, i:i + 480])
+    p = tand * 2 * np.pi * f * C * V**2 / 2
+    assert lim.temperature[0] == pytest.approx(25.0 + rth * p, rel=2e-3)
+
+
+def test_overtemperature_is_a_fault():
+    lim = make(1, temperature=25.5, loss_tangent=0.5, thermal_tau=1e-3, thermal_resistance=1e4,
+               capacitance=1e-6, current=10.0, slew=1e9)
+    t = np.arange(4800) / 48000.0
+    x = (100 * np.sin(2 * np.pi * 300 * t))[None, :].copy()
+    assert lim.process(x) & OVERTEMP & safety.FAULTS
+
+
+def test_shutdown_fades_to_zero_in_the_given_samples_and_ignores_requests():
+    lim = make(2, slew=1e9, current=10.0)
+    x = np.full((2, 32), 50.0)
+    x[1] = -40.0
+    lim.process(x)
+    lim.shutdown(32)
+    y = np.full((2, 40), np.nan)  # a controller gone wrong
+    lim.process(y)
+    np.testing.assert_allclose(y[:, :32], np.outer([50.0, -40.0], 1 - np.arange(1, 33) / 32), atol=1e-12)
+    assert np.all(y[:, 31:] == 0.0) and lim.done
+    z = np.full((2, 8), 1e3)
+    lim.process(z)
+    assert np.all(z == 0.0)
+
+
+def test_rejects_unsafe_parameters():
+    with pytest.raises(ValueError, match="max_voltage"):
+        make(1, max_voltage=np.inf)
+    with pytest.raises(ValueError, match="capacitance"):
+        make(1, capacitance=0.0)
+
+
+def test_describe_names_bits():
+    assert safety.describe(NONFINITE | LIMIT_VOLTAGE) == ["voltage limited", "non-finite drive request (NaN/Inf) replaced by 0 V"]
