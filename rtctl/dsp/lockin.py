@@ -1,0 +1,272 @@
+"""Lock-in demodulation at known frequencies over a sliding rectangular window."""
+
+from fractions import Fraction
+
+import numpy as np
+
+from rtctl.dsp import _kernels as _k
+from rtctl.dsp.oscillator import _check_block, _check_fs, _check_int
+
+__all__ = ["LockIn", "beat_window", "window_leakage"]
+
+
+def window_leakage(df, window, fs):
+    """Relative leakage of a tone ``df`` Hz away into a lock-in estimate with a W-sample window.
+
+    ``|D_W(df)| = |sin(pi df W / fs) / (W sin(pi df / fs))|``: the magnitude (relative to the
+    tone's own amplitude) that a tone at ``f + df`` adds to the estimate at ``f``. It is zero
+    when ``df W / fs`` is a non-zero integer and bounded by ``fs / (pi |df| W)`` for
+    ``|df| << fs``. Each real tone at ``f'`` leaks through ``df = f' - f`` and its mirror
+    ``df = f' + f``.
+
+    Parameters
+    ----------
+    df : float or array_like
+        Frequency offset, Hz.
+    window : int
+        Window length W, samples.
+    fs : float
+        Sample rate, Hz.
+
+    Returns
+    -------
+    float or ndarray
+        Leakage, 1 at ``df = 0``.
+
+    Examples
+    --------
+    >>> float(window_leakage(10.0, 4800, 48000.0)) < 1e-15   # one beat period: no leakage
+    True
+    >>> round(float(window_leakage(10.0, 4000, 48000.0)), 3)
+    0.191
+    """
+    x = np.pi * np.asarray(df, dtype=np.float64) / fs
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.abs(np.sin(window * x) / (window * np.sin(x)))
+    return np.where(np.sin(x) == 0.0, 1.0, d)
+
+
+def beat_window(fs, beat, periods=1):
+    """Shortest window of at least ``periods`` beat periods that is a whole number of samples.
+
+    Over ``W = m fs / f_b`` samples the two tones of a beat pair (``f_c -+ f_b / 2``) are
+    orthogonal, so each lock-in estimate is free of the other tone (:func:`window_leakage`).
+
+    Parameters
+    ----------
+    fs : float
+        Sample rate, Hz.
+    beat : float
+        Beat frequency f_b > 0, Hz.
+    periods : int
+        Minimum number of beat periods.
+
+    Returns
+    -------
+    int
+        W, samples. If no multiple of the period up to 1000 periods is a whole number of
+        samples, the nearest integer to ``periods fs / f_b`` (then check the leakage).
+
+    Examples
+    --------
+    >>> beat_window(48000.0, 10.0)
+    4800
+    >>> beat_window(48000.0, 7.0)          # 48000 / 7 samples is not whole; 7 periods are
+    48000
+    """
+    fs = _check_fs(fs)
+    beat = float(beat)
+    if not (np.isfinite(beat) and beat > 0.0):
+        raise ValueError(f"beat = {beat} Hz is out of range: allowed 0 < beat < inf")
+    periods = _check_int("periods", periods, 1)
+    ratio = Fraction(fs) / Fraction(beat)
+    q = ratio.limit_denominator(1000)
+    if q == ratio or abs(float(q) - float(ratio)) <= 1e-12 * float(ratio):
+        m = -(-periods // q.denominator) * q.denominator
+        return int(q * m)
+    return int(round(periods * float(ratio)))
+
+
+class LockIn:
+    """Amplitude and phase of known tones in each channel, over a sliding window.
+
+    Parameters
+    ----------
+    n_channels : int
+        Rows of the input blocks.
+    freq : array_like, shape (n_channels, n_freq) or (n_channels,)
+        Reference frequencies, Hz, ``0 < f <= fs / 2``; NaN or 0 marks an unused slot (its
+        estimates read NaN).
+    fs : float
+        Sample rate, Hz.
+    window : int
+        Window length W, samples, a multiple of ``hop``. Use :func:`beat_window` for beat pairs.
+    hop : int, optional
+        The window slides in hops of this many samples. Default: the largest divisor of
+        ``window`` not above 32 (one block of the loop).
+    ramp : int
+        Samples over which a reference frequency change is ramped, as in the oscillator bank;
+        use the bank's ramp so that a demodulated tone keeps reading the bank's phase across
+        frequency changes.
+
+    Notes
+    -----
+    **Convention.** Each slot has a reference oscillator ``exp(i theta(t))`` with
+    ``theta = 0`` at construction / :meth:`reset`, advancing at the slot's frequency and
+    phase-continuous across changes (the same machinery as :class:`OscillatorBank`). With
+    ``S = sum over the window of x[n] exp(-i theta[n])``, the estimate is the phasor
+    ``X = 2 S / W = A exp(i phi)`` for ``x = A cos(theta + phi)``: amplitude ``A`` (peak),
+    phase ``phi`` (rad, in (-pi, pi]). A bank tone ``a cos(phase)`` started with phase ``phi``
+    at the same sample and frequency is read back as ``(a, phi)``.
+
+    **Update.** Products are accumulated every sample; every ``hop`` samples (on the sample
+    clock since reset, independent of call lengths) the hop's partial sum enters a ring of
+    ``W / hop`` hops. ``process`` returns the estimate over the ``W`` samples ending at the
+    last completed hop (with ``hop`` = the block and blocks aligned, exactly the last ``W``
+    samples); amplitude and phase (``hypot``, ``atan2``) are computed once at the end of a call
+    in which a hop closed. Until ``W`` samples have been seen the window is zero-filled and the
+    amplitude reads low. A reference frequency change mixes old and new products in the window
+    for ``W`` samples.
+
+    **No drift.** The window sum is updated by adding the new hop and subtracting the oldest,
+    which alone would let round-off random-walk over hours; each time the ring wraps, the sum is
+    replaced by a fresh sum of exactly the hops it holds (accumulated alongside), so the error
+    stays at a few ulp of one window, forever.
+
+    **Leakage.** A rectangular window leaks a tone ``df`` Hz away with relative magnitude
+    :func:`window_leakage` ``= |sin(pi df W / fs) / (W sin(pi df / fs))|``, zero when
+    ``df W / fs`` is an integer. For a beat pair ``f_c -+ f_b / 2`` the tones are ``f_b`` apart
+    and their mirrors ``2 f_c`` and ``2 f_c -+ f_b`` away. At fs = 48 kHz, f_c = 250 Hz,
+    f_b = 10 Hz (245 / 255 Hz):
+
+    ===========  ============  ==================  =====================
+    W, samples   beat periods  neighbour (10 Hz)   mirrors (490-510 Hz)
+    ===========  ============  ==================  =====================
+    2400         0.5           0.64                0.013
+    4000         0.83          0.19                0.0066
+    4800         1             < 1e-15             < 1e-15
+    7200         1.5           0.21                0.0043
+    9600         2             < 1e-15             < 1e-15
+    47000        9.79          0.020               0.0006
+    48000        10            < 1e-15             < 1e-15
+    ===========  ============  ==================  =====================
+
+    so use ``W = m fs / f_b`` (:func:`beat_window`); with ``f_c / f_b`` a multiple of 1/2 the
+    mirrors vanish too, otherwise they stay below ``fs / (2 pi f_c W)``.
+
+    For the loop: ``lockin_process(*lockin.args, x, out)`` with
+    ``lockin.args == (ref, pending, chan, acc, ring)``.
+
+    Examples
+    --------
+    >>> from rtctl.dsp import OscillatorBank
+    >>> fs = 48000.0
+    >>> bank = OscillatorBank.beat_pairs(1, [0], fs, 250.0, 10.0, 2.0)
+    >>> lock = LockIn(1, [[245.0, 255.0]], fs, window=beat_window(fs, 10.0))
+    >>> x = np.zeros((1, 4800))
+    >>> bank.process(x)
+    >>> est = lock.process(x)
+    >>> np.round(est[0, :, 0], 9)                 # amplitude of each tone
+    array([1., 1.])
+    """
+
+    def __init__(self, n_channels, freq, fs, window, hop=None, ramp=32):
+        self.n_channels = _check_int("n_channels", n_channels, 1)
+        self.fs = _check_fs(fs)
+        self.window = _check_int("window", window, 1)
+        if hop is None:
+            hop = max(d for d in range(1, min(32, self.window) + 1) if self.window % d == 0)
+        self.hop = _check_int("hop", hop, 1, self.window)
+        if self.window % self.hop:
+            raise ValueError(f"window = {self.window} is not a multiple of hop = {self.hop}: choose hop dividing window")
+        self.ramp = _check_int("ramp", ramp, 1, _k.MAX_RAMP)
+        f = np.asarray(freq, dtype=np.float64)
+        if f.ndim == 1:
+            f = f[:, None]
+        if f.ndim != 2 or f.shape[0] != self.n_channels or f.shape[1] < 1:
+            raise ValueError(f"freq has shape {np.shape(freq)}: expected ({self.n_channels}, n_freq)")
+        self.n_freq = f.shape[1]
+        self._freq0 = self._checked(f)
+        ns = self.n_channels * self.n_freq
+        self.ref = np.zeros((_k.N_OSC, ns))
+        self.pending = np.zeros((_k.N_PEND, ns))
+        self.chan = np.repeat(np.arange(self.n_channels, dtype=np.int64), self.n_freq)
+        self.acc = np.zeros((_k.N_ACC, ns))
+        self.ring = np.zeros((self.window // self.hop, 2, ns))
+        self.reset()
+
+    @property
+    def args(self):
+        """Arrays in kernel order: ``lockin_process(*lockin.args, x, out)``."""
+        return (self.ref, self.pending, self.chan, self.acc, self.ring)
+
+    def process(self, x, out=None):
+        """Demodulate the block ``x``; return the estimates at the last completed hop.
+
+        Parameters
+        ----------
+        x : ndarray, shape (n_channels, n), float64, C-contiguous
+            Input block.
+        out : ndarray, shape (n_channels, n_freq, 2), float64, optional
+            Receives amplitude (peak) and phase (rad); NaN for unused slots. Allocated if None.
+
+        Returns
+        -------
+        out : ndarray, shape (n_channels, n_freq, 2)
+        """
+        _check_block("x", x, self.n_channels)
+        shape = (self.n_channels, self.n_freq, 2)
+        if out is None:
+            out = np.empty(shape)
+        elif not isinstance(out, np.ndarray) or out.shape != shape or out.dtype != np.float64:
+            raise ValueError(f"out must be a float64 array of shape {shape}, got {getattr(out, 'shape', out)!r}")
+        _k.lockin_process(self.ref, self.pending, self.chan, self.acc, self.ring, x, out)
+        return out
+
+    def reset(self):
+        """Empty window, references back to phase 0 at the constructor's frequencies."""
+        flat = self._freq0.reshape(-1)
+        used = flat > 0.0
+        _k.osc_init(self.ref, self.pending, flat, used * 1.0, np.zeros_like(flat), self.fs, float(self.ramp))
+        self.acc[:] = 0.0
+        self.acc[_k.HOP] = self.hop
+        self.acc[_k.EST_A] = np.where(used, 0.0, np.nan)
+        self.acc[_k.EST_P] = np.where(used, 0.0, np.nan)
+        self.ring[:] = 0.0
+
+    def set_freq(self, freq, ramp=None):
+        """New reference frequencies, shape (n_channels, n_freq) (NaN or 0: unused), from the next call."""
+        f = np.asarray(freq, dtype=np.float64)
+        if f.ndim == 1 and self.n_freq == 1:
+            f = f[:, None]
+        if f.shape != (self.n_channels, self.n_freq):
+            raise ValueError(f"freq has shape {f.shape}: expected ({self.n_channels}, {self.n_freq})")
+        self.pending[_k.P_FREQ] = self._checked(f).reshape(-1)
+        self.pending[_k.P_RAMP] = self.ramp if ramp is None else _check_int("ramp", ramp, 1, _k.MAX_RAMP)
+        self.pending[_k.P_FLAG] = 1.0
+
+    @property
+    def phasor(self):
+        """ndarray, shape (n_channels, n_freq), complex: ``A exp(i phi)`` at the last hop (NaN unused)."""
+        scale = 2.0 / self.window
+        x = scale * (self.acc[_k.S_R] + 1j * self.acc[_k.S_I])
+        x[~(self.ref[_k.INC1] > 0.0)] = np.nan
+        return x.reshape(self.n_channels, self.n_freq)
+
+    @property
+    def amplitude(self):
+        """ndarray, shape (n_channels, n_freq): amplitude (peak) at the last hop."""
+        return self.acc[_k.EST_A].reshape(self.n_channels, self.n_freq).copy()
+
+    @property
+    def phase(self):
+        """ndarray, shape (n_channels, n_freq): phase (rad) relative to the reference, at the last hop."""
+        return self.acc[_k.EST_P].reshape(self.n_channels, self.n_freq).copy()
+
+    def _checked(self, f):
+        f = np.where(np.isnan(f), 0.0, f)
+        bad = ~((f >= 0.0) & (f <= self.fs / 2))
+        if bad.any():
+            c, j = np.argwhere(bad)[0]
+            raise ValueError(f"freq[{c}, {j}] = {f[c, j]} Hz is out of range: allowed 0 <= freq <= fs / 2 = {self.fs / 2} Hz (NaN or 0: unused)")
+        return np.ascontiguousarray(f, dtype=np.float64)
