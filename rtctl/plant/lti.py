@@ -64,7 +64,7 @@ class StateSpace:
     >>> lowpass = StateSpace([[-10.0]], [[10.0]], [[1.0]], [[0.0]])
     >>> lowpass.dynamics(0.0, np.array([0.5]), np.array([1.0]))
     array([5.])
-    >>> abs(lowpass.frequency_response([0.0])[0, 0, 0])
+    >>> float(abs(lowpass.frequency_response([0.0])[0, 0, 0]))
     1.0
     """
 
@@ -476,8 +476,8 @@ def to_modal(sysd: StateSpace, max_cond: float = 1e8, form: str = "auto",
     for k, j in enumerate(reals):
         v = vr[:, j].real
         V[:, 2 * n_pairs + k] = v / np.linalg.norm(v)
-    cols = np.linalg.norm(V, axis=0)
-    V = V / np.where(cols > 0, cols, 1.0)
+    # Columns are not rescaled one by one: a and b of a pair must share one scale for the
+    # block to stay [[sigma, omega], [-omega, sigma]].
     cond = float(np.linalg.cond(V)) if np.all(np.isfinite(V)) else np.inf
     if not (cond <= max_cond):
         return _fail(form, dense, f"eigenvector basis condition {cond:.3g} > max_cond "
