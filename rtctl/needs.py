@@ -72,8 +72,8 @@ def needs(scene) -> Needs:
     else:
         need["render"] = f"stimulus.kind = {st.kind!r}"
     if scene.control.mode == "closed":
-        need["selfsense"] = "control.mode = 'closed' estimates the tips from the currents"
-        need["dsp.lockin"] = "control.mode = 'closed' demodulates the sensed currents"
+        need["selfsense"] = "control.mode = 'closed'"
+        need["dsp.lockin"] = "control.mode = 'closed'"
         need["control"] = "control.mode = 'closed'"
     backend = scene.io.backend
     need[f"io.{backend}"] = f"io.backend = {backend!r}"
@@ -96,4 +96,4 @@ def unavailable_message(component: str, why: str) -> str:
     }
     fix = fixes.get(component, "use io.backend = 'sim' with a bimorph actuator for now"
                     if component.startswith(("io.", "plant.")) else "")
-    return f"{why} needs {COMPONENTS[component][0]} ({component}), which this version of rtctl does not have yet; {fix}"
+    return f"{why} needs the {COMPONENTS[component][0]} ({component}), which this version of rtctl does not have yet; {fix}"

@@ -66,7 +66,7 @@ def _maxwell(doc: str) -> Table:
             "k0": Key("float", 300.0, "N/m", "equilibrium (long-term) stiffness", 0.0, 1e6),
             "branches": Table(
                 {
-                    "k": Key("float", REQUIRED, "N/m", "branch stiffness", 0.0, 1e6),
+                    "k": Key("float", REQUIRED, "N/m", "branch stiffness", 0.0, 1e6, open_lo=True),
                     "tau": Key("float", REQUIRED, "s", "branch relaxation time", 1e-6, 1e4, open_lo=True),
                 },
                 "Maxwell branches, f_i' = k_i x' - f_i / tau_i; `[]` for a pure spring",

@@ -1,0 +1,173 @@
+"""The ``rtctl`` command line.
+
+Every expected failure (bad scene, bad value, unavailable component, device trouble) prints one
+line to stderr and exits with status 2; a run that ends on a fault exits with 1 after its trace
+and summary are written; Ctrl-C exits with 130 after the outputs have faded to zero. Heavy
+modules are imported inside the commands that need them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+from . import __version__
+from .errors import RtctlError
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    debug = args.debug or bool(os.environ.get("RTCTL_DEBUG"))
+    try:
+        return args.func(args)
+    except RtctlError as e:
+        if debug:
+            raise
+        print(f"rtctl: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("rtctl: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # an rtctl bug: one line, and the way to the traceback
+        if debug:
+            raise
+        print(f"rtctl: internal error: {type(e).__name__}: {e} (rerun with --debug for the traceback)", file=sys.stderr)
+        return 3
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rtctl", description="Real-time control of tactile displays.")
+    p.add_argument("--version", action="version", version=f"rtctl {__version__}")
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def scene_cmd(name, help_, func):
+        s = sub.add_parser(name, help=help_, description=help_)
+        s.add_argument("scene", metavar="SCENE", help="scene file or bundled scene name (see `rtctl scenes`)")
+        s.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                       help="override a scene key, e.g. --set timing.block=64 (repeatable)")
+        s.add_argument("--json", action="store_true", help="print one JSON object")
+        s.set_defaults(func=func)
+        return s
+
+    r = scene_cmd("run", "run the loop (default backend: simulated rig)", _run)
+    r.add_argument("--duration", type=float, metavar="S", help="override timing.duration")
+    r.add_argument("--out", metavar="DIR", help="output directory (default out/SCENE_NAME)")
+    r.add_argument("--realtime", action="store_true", help="pace blocks to the wall clock and count deadline misses")
+    r.add_argument("--no-plot", action="store_true", help="skip plot.png")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    s = sub.add_parser("scenes", help="list the bundled scenes", description="list the bundled scenes")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=_scenes)
+
+    scene_cmd("check", "validate a scene; list what it needs and what it leaves out", _check)
+    scene_cmd("model", "actuator model facts: natural frequencies, static values, capacitance", _model)
+    return p
+
+
+def _load(args):
+    from . import scene
+
+    overrides = list(args.overrides)
+    if getattr(args, "duration", None) is not None:
+        overrides.append(f"timing.duration={args.duration!r}")
+    return scene.load(args.scene, overrides)
+
+
+def _print_json(obj) -> None:
+    print(json.dumps(obj, indent=1, allow_nan=False, default=_json_default))
+
+
+def _json_default(o):
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def _scenes(args) -> int:
+    from . import scene
+
+    rows = []
+    for name in scene.bundled():
+        s = scene.load(name)
+        rows.append({"name": name, "description": s.scene.description, "channels": s.n_channels,
+                     "backend": s.io.backend, "path": s.source})
+    if args.json:
+        _print_json({"scenes": rows})
+    else:
+        w = max(len(r["name"]) for r in rows)
+        for r in rows:
+            print(f"{r['name']:<{w}}  {r['channels']:>3} ch  {r['description']}")
+    return 0
+
+
+def _check(args) -> int:
+    from .needs import needs, unavailable_message
+
+    s = _load(args)
+    n = needs(s)
+    if args.json:
+        _print_json({"scene": s.scene.name, "valid": True, **n.to_dict(), "modules": list(n.modules)})
+    else:
+        print(f"{s.source}: valid ({s.n_channels} channels, backend {s.io.backend})")
+        print("needs:")
+        for c, why in n.needed.items():
+            print(f"  {c:<16} {why}")
+        print("leaves out:")
+        print("  " + ", ".join(n.left_out))
+    if n.unavailable:
+        c = n.unavailable[0]
+        print(f"rtctl: error: {unavailable_message(c, n.needed[c])}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _model(args) -> int:
+    from .rig import model_facts
+
+    s = _load(args)
+    facts = model_facts(s)
+    if args.json:
+        _print_json({"scene": s.scene.name, "actuators": facts})
+        return 0
+    for name, f in facts.items():
+        print(f"actuator {name}:")
+        for k, v in f.items():
+            if isinstance(v, list):
+                v = ", ".join(f"{x:.6g}" for x in v)
+            elif isinstance(v, float):
+                v = f"{v:.6g}"
+            print(f"  {k:<34} {v}")
+    return 0
+
+
+def _run(args) -> int:
+    from .loop import run
+    from .report import print_table
+
+    s = _load(args)
+    out = args.out or os.path.join("out", s.scene.name)
+    result = run(s, out_dir=out, realtime=args.realtime, plot=not args.no_plot,
+                 progress=not (args.quiet or args.json))
+    if args.json:
+        _print_json(result.summary)
+    else:
+        print_table(result.summary)
+        print(f"trace, summary.json{'' if args.no_plot else ' and plot.png'} in {out}")
+    for msg in result.summary["faults"]:
+        print(f"rtctl: fault: {msg}", file=sys.stderr)
+    if result.interrupted:
+        return 130
+    return 1 if result.summary["faults"] else 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

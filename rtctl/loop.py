@@ -1,0 +1,172 @@
+"""The fixed-rate engine: read -> block step -> write, one block at a time, with a trace.
+
+Per block the engine calls the backend's ``read`` (sensed currents, one block late as on an
+audio interface), the rig's ``@njit`` block step (synthesis and the final limiter over
+preallocated arrays) and the backend's ``write`` (for the ``sim`` backend this advances the
+simulated plant). Python decides between blocks: scheduled parameter changes, faults, pacing and
+the trace. On a fault or Ctrl-C every output fades to zero over one block before the run ends,
+and the trace keeps every finished block.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import safety
+
+
+@dataclass
+class RunResult:
+    """What :func:`run` returns: the summary (ARCHITECTURE.md ``run --json``), whether Ctrl-C
+    ended it, and where the trace, summary.json and plot.png went (None without ``out_dir``)."""
+
+    summary: dict
+    interrupted: bool
+    out_dir: Path | None
+
+
+class _Progress:
+    """A one-line progress bar on a terminal, for runs longer than a few seconds of wall time."""
+
+    def __init__(self, total: int, enabled: bool):
+        self.total = total
+        self.enabled = enabled and sys.stderr.isatty()
+        self.t0 = time.perf_counter()
+        self.last = 0.0
+        self.shown = False
+
+    def update(self, done: int) -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        if now - self.last < 0.2:
+            return
+        self.last = now
+        el = now - self.t0
+        eta = el * (self.total - done) / max(done, 1)
+        if not self.shown and el + eta < 3.0:
+            return
+        self.shown = True
+        frac = done / self.total
+        bar = "#" * int(30 * frac)
+        sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f} %  {el:5.1f} s, {eta:5.1f} s left ")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.shown:
+            sys.stderr.write("\r" + " " * 70 + "\r")
+            sys.stderr.flush()
+
+
+def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress: bool = False) -> RunResult:
+    """Build the rig for ``scene`` and run it for ``timing.duration``.
+
+    Parameters
+    ----------
+    scene : rtctl.scene.Scene
+    out_dir : str or Path, optional
+        Where ``trace/``, ``summary.json`` and ``plot.png`` go; nothing is written without it.
+    realtime : bool
+        Pace blocks to the wall clock and count deadline misses; otherwise run as fast as
+        possible and report the real-time factor.
+    """
+    from .rig import build
+    from .trace import TraceReader, TraceWriter
+
+    t_build = time.perf_counter()
+    rig = build(scene)
+    build_s = time.perf_counter() - t_build
+    fs, block = rig.fs, rig.block
+    n_blocks = max(1, math.ceil(scene.timing.duration * fs / block))
+    out = Path(out_dir) if out_dir is not None else None
+    writer = None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        writer = TraceWriter(out / "trace", rig.trace_signals(), fs, block, rig.channel_names,
+                             meta={"scene": scene.to_dict(), "source": scene.source,
+                                   "overrides": list(scene.overrides)})
+    times = np.zeros(n_blocks + 1)
+    faults: list[str] = []
+    status_seen = 0
+    misses = 0
+    interrupted = False
+    bar = _Progress(n_blocks, progress)
+    period = block / fs
+    k = 0
+    run_blocks = n_blocks
+    t_start = time.perf_counter()
+    try:
+        while k < n_blocks:
+            rig.apply_schedule(k)
+            t0 = time.perf_counter_ns()
+            status = rig.advance()
+            t1 = time.perf_counter_ns()
+            times[k] = (t1 - t0) * 1e-3
+            if realtime:
+                deadline = t_start + (k + 1) * period
+                now = time.perf_counter()
+                if now > deadline:
+                    misses += 1
+                    status |= safety.DEADLINE_MISSED
+                else:
+                    time.sleep(deadline - now)
+            status_seen |= status
+            if writer is not None:
+                rig.record(writer.next(), status, times[k])
+            k += 1
+            if status & safety.FAULTS:
+                faults.append(f"at {k * period:.4f} s: " + "; ".join(safety.describe(status & safety.FAULTS))
+                              + "; outputs faded to 0 V")
+                run_blocks = k
+                break
+            bar.update(k)
+    except KeyboardInterrupt:
+        interrupted = True
+        run_blocks = k
+    finally:
+        bar.close()
+        wall = time.perf_counter() - t_start
+        # Whatever happened, fade every output to zero over one more block (recorded).
+        rig.limiter.shutdown(block)
+        status = rig.advance()
+        if writer is not None:
+            rig.record(writer.next(), status, 0.0)
+            writer.close()
+    bt = times[:run_blocks] if run_blocks else np.zeros(1)
+    summary = {
+        "scene": scene.scene.name,
+        "fs": fs,
+        "block": block,
+        "duration_s": run_blocks * period,
+        "realtime_factor": (run_blocks * period / wall) if wall > 0 else math.inf,
+        "block_time_us": {
+            "p50": float(np.percentile(bt, 50)),
+            "p99": float(np.percentile(bt, 99)),
+            "p999": float(np.percentile(bt, 99.9)),
+            "max": float(bt.max()),
+        },
+        "deadline_misses": misses,
+        "faults": faults,
+        "warnings": [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
+        "build_s": build_s,
+        "interrupted": interrupted,
+        "channels": [],
+    }
+    if out is not None:
+        from .report import channel_rows
+
+        reader = TraceReader(out / "trace")
+        summary["channels"] = channel_rows(rig, reader, run_blocks)
+        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        if plot and run_blocks:
+            from .report import plot as make_plot
+
+            make_plot(summary, reader, out / "plot.png", run_blocks)
+    return RunResult(summary, interrupted, out)

@@ -1,0 +1,167 @@
+"""After a run: per-channel results from the trace, the table, and plot.png.
+
+The true tip amplitude of a channel is a least-squares fit of the simulated tip displacement to
+its tone frequencies (plus an offset and a linear drift, which absorb the slow relaxation of the
+finger's 1.4 s Maxwell branch) over the analysis window: the last 0.5 s of the run, or two
+periods of the channel's lowest tone if that is longer, capped at the second half of the run. For
+a beat pair it is the sum of both tones' amplitudes, the peak of the envelope.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+SETTLE_BAND = 0.05  # settled once every later envelope estimate is within 5 % of the final one
+
+
+def fit_amplitudes(x: np.ndarray, t: np.ndarray, freqs) -> np.ndarray:
+    """Amplitudes of ``x(t)`` at ``freqs`` (Hz) by least squares with offset and linear drift."""
+    cols = [np.ones_like(t), t - t.mean()]
+    for f in freqs:
+        w = 2 * np.pi * f * t
+        cols += [np.cos(w), np.sin(w)]
+    a = np.column_stack(cols)
+    coef, *_ = np.linalg.lstsq(a, x, rcond=None)
+    c = coef[2:].reshape(-1, 2)
+    return np.hypot(c[:, 0], c[:, 1])
+
+
+def analysis_window(duration: float, freqs) -> float:
+    lowest = min(freqs) if freqs else 1.0
+    return min(max(0.5, 2.0 / lowest), duration / 2)
+
+
+def settle_time(x, t, freqs, start, final) -> float | None:
+    """Seconds from ``start`` until the amplitude stays within SETTLE_BAND of ``final``."""
+    if not final > 0:
+        return None
+    w = max(1.0 / min(freqs), 4e-3)
+    edges = np.arange(start, t[-1] - w, w / 2)
+    if edges.size == 0:
+        return None
+    amps = []
+    for e in edges:
+        m = (t >= e) & (t < e + w)
+        amps.append(fit_amplitudes(x[m], t[m], freqs).sum())
+    ok = np.abs(np.asarray(amps) / final - 1.0) <= SETTLE_BAND
+    bad = np.flatnonzero(~ok)
+    if bad.size == 0:
+        return 0.0
+    if bad[-1] == ok.size - 1:
+        return None
+    return float(edges[bad[-1] + 1] + w - start)
+
+
+def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
+    """The ``channels`` list of the run summary (ARCHITECTURE.md), one row per channel."""
+    fs, block = rig.fs, rig.block
+    n = n_run_blocks * block
+    t = np.arange(n) / fs
+    tip = reader.signal("tip_um")[:, :n] if "tip_um" in reader.units else None
+    drive = reader.signal("drive")[:, :n]
+    rows = []
+    for ch in range(rig.n_channels):
+        tones = [tn for tn in rig.tones if tn.channel == ch]
+        freqs = [f for tn in tones for f in tn.freqs]
+        main = tones[0] if tones else None
+        row = {
+            "name": rig.channel_names[ch],
+            "group": rig.channel_groups[ch],
+            "receptor": main.receptor if main else None,
+            "freq_hz": main.freq if main else None,
+            "target_um": _um(main.target_m) if main else None,
+            "threshold_um": _um(main.threshold_m) if main else None,
+            "true_um": None,
+            "estimated_um": None,
+            "error_pct": None,
+            "settle_ms": None,
+            "v_peak": float(np.max(np.abs(drive[ch]))) if n else 0.0,
+            "limited": bool(rig.limiter.counts[ch].sum() > 0),
+        }
+        if tip is not None and freqs:
+            win = analysis_window(n / fs, freqs)
+            m = t >= t[-1] - win
+            amp = float(fit_amplitudes(tip[ch, m], t[m], freqs).sum())
+            row["true_um"] = amp
+            if main.target_m and math.isfinite(main.target_m):
+                row["error_pct"] = 100.0 * (amp * 1e-6 - main.target_m) / main.target_m
+            st = settle_time(tip[ch], t, freqs, min(tn.start for tn in tones), amp)
+            row["settle_ms"] = None if st is None else 1e3 * st
+        rows.append(row)
+    return rows
+
+
+def _um(x: float) -> float | None:
+    return None if x is None or not math.isfinite(x) else x * 1e6
+
+
+def _fmt(v, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def print_table(summary: dict) -> None:
+    """The per-channel table ``rtctl run`` prints."""
+    print(f"{summary['scene']}: {summary['duration_s']:g} s at {summary['fs']:g} Hz, block {summary['block']}, "
+          f"real-time factor {summary['realtime_factor']:.1f}, block time p99 "
+          f"{summary['block_time_us']['p99']:.1f} us, deadline misses {summary['deadline_misses']}")
+    head = f"{'channel':<12}{'receptor':<10}{'freq Hz':>9}{'V peak':>8}{'true um':>10}{'thresh um':>10}" \
+           f"{'target um':>10}{'error %':>9}{'settle ms':>10}  felt"
+    print(head)
+    print("-" * len(head))
+    for r in summary["channels"]:
+        felt = "-"
+        if r["true_um"] is not None and r["threshold_um"] is not None:
+            felt = "yes" if r["true_um"] >= r["threshold_um"] else "NO"
+        print(f"{r['name']:<12}{(r['receptor'] or '-'):<10}{_fmt(r['freq_hz'], '9.1f')}{r['v_peak']:8.1f}"
+              f"{_fmt(r['true_um'], '10.3g')}{_fmt(r['threshold_um'], '10.3g')}{_fmt(r['target_um'], '10.3g')}"
+              f"{_fmt(r['error_pct'], '9.1f')}{_fmt(r['settle_ms'], '10.0f')}  {felt}"
+              f"{' (limited)' if r['limited'] else ''}")
+
+
+def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> None:
+    """plot.png: drive voltage and true tip displacement per channel against the threshold and
+    target lines, and a bar chart of every channel's amplitude against its threshold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = summary["channels"]
+    shown = rows[:max_rows]
+    n = n_run_blocks * reader.block
+    t = reader.time()[:n]
+    drive = reader.signal("drive")[:, :n]
+    tip = reader.signal("tip_um")[:, :n] if "tip_um" in reader.units else None
+    fig = plt.figure(figsize=(11, 2.0 * len(shown) + 3.2), layout="constrained")
+    gs = fig.add_gridspec(len(shown) + 1, 2, height_ratios=[1] * len(shown) + [1.6])
+    for i, r in enumerate(shown):
+        ax = fig.add_subplot(gs[i, 0])
+        ax.plot(t, drive[i], lw=0.6, color="C0")
+        ax.set_ylabel("drive V")
+        ax.set_title(f"{r['name']}  {_fmt(r['freq_hz'], '.0f')} Hz  {r['receptor'] or ''}", fontsize=9, loc="left")
+        if tip is not None:
+            bx = fig.add_subplot(gs[i, 1], sharex=ax)
+            bx.plot(t, tip[i], lw=0.6, color="C1", label="true tip")
+            for key, style, label in (("threshold_um", "--", "threshold"), ("target_um", ":", "target")):
+                if r[key] is not None:
+                    bx.axhline(r[key], ls=style, color="k", lw=0.8, label=label)
+                    bx.axhline(-r[key], ls=style, color="k", lw=0.8)
+            bx.set_ylabel("tip um")
+            if i == 0:
+                bx.legend(fontsize=7, loc="upper right")
+    ax.set_xlabel("time s")
+    cx = fig.add_subplot(gs[-1, :])
+    x = np.arange(len(rows))
+    true = [r["true_um"] or np.nan for r in rows]
+    thr = [r["threshold_um"] or np.nan for r in rows]
+    cx.bar(x - 0.2, true, 0.4, label="true amplitude", color="C1")
+    cx.bar(x + 0.2, thr, 0.4, label="perception threshold", color="0.6")
+    cx.set_yscale("log")
+    cx.set_xticks(x, [f"{r['name']}\n{r['receptor'] or ''}" for r in rows], fontsize=7)
+    cx.set_ylabel("amplitude um (log)")
+    cx.legend(fontsize=8)
+    fig.suptitle(f"{summary['scene']}: true tip amplitude against the perception thresholds", fontsize=11)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -1,0 +1,285 @@
+"""build(scene) -> Rig: the components a scene uses, preallocated and compiled, nothing else.
+
+The rig owns the block buffers (``out``: drive volts, ``sensed``: segment currents, both
+``(rows, block)`` float64), the synthesis bank, the final limiter and the I/O backend, and
+advances them one block at a time with :meth:`Rig.advance`. Everything a scene leaves out (see
+:mod:`rtctl.needs`) is neither imported nor compiled: e.g. an open-loop scene never touches
+``rtctl.selfsense`` or ``cv2``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import perception
+from .errors import SceneError
+from .needs import needs, unavailable_message
+
+
+@dataclass(frozen=True)
+class Tone:
+    """One scene tone (or beat pair) on one channel, with its perception target."""
+
+    channel: int              # global channel index
+    freq: float               # Hz, carrier for a beat pair
+    beat: float               # Hz, 0 for a single tone
+    voltage: float            # V peak (envelope peak for a pair)
+    receptor: str | None
+    threshold_m: float        # m, NaN when no receptor responds at freq
+    target_m: float           # m
+    start: float              # s
+    bank_index: tuple         # oscillator tones that make it
+
+    @property
+    def freqs(self) -> tuple:
+        if self.beat > 0:
+            return (self.freq - self.beat / 2, self.freq + self.beat / 2)
+        return (self.freq,)
+
+
+def check_available(scene) -> None:
+    """Refuse, in one line, a scene needing a component this version does not have."""
+    n = needs(scene)
+    if n.unavailable:
+        c = n.unavailable[0]
+        raise SceneError(f"{scene.source}: {unavailable_message(c, n.needed[c])}")
+
+
+def _materials(scene):
+    from .plant.materials import BUILTIN, material
+
+    names = {layer.material for a in scene.actuator for layer in a.beam.layers}
+    out = {}
+    for name in names:
+        table = scene.materials.get(name)
+        out[name] = material(name, dict(table) if table else None) if (table or name not in BUILTIN) else BUILTIN[name]
+    return out
+
+
+def beam_model(group, materials):
+    """The finite-element beam of a bimorph actuator group (no finger)."""
+    from .plant.beam import BeamSpec, Layer, SupportSpec, build_beam
+
+    b = group.beam
+    layers = tuple(Layer(materials[layer.material], layer.thickness) for layer in b.layers)
+    spec = BeamSpec(b.length, b.width, layers, b.connection, tuple(b.segments), b.damping, b.elements)
+    sup = group.support
+    if sup.type == "actuator":
+        raise SceneError(f"actuator.{group.name}.support.type = 'actuator' (a moving support) is not simulated "
+                         "yet; use 'clamped' or 'elastic'")
+    return build_beam(spec, SupportSpec(sup.type, sup.k, sup.k_rot))
+
+
+def finger_load(scene, group):
+    """The generalized Maxwell finger on ``group``'s tips, or None without contact."""
+    from .plant.finger import MaxwellLoad
+
+    if not scene.finger.contact:
+        return None
+    f = scene.finger[group.direction]
+    return MaxwellLoad(f.mass, f.k0, tuple((b.k, b.tau) for b in f.branches))
+
+
+def model_facts(scene) -> dict:
+    """``rtctl model``: per actuator group, the facts of :func:`rtctl.plant.facts.model_facts`
+    with ``loaded_natural_frequencies_hz`` under the scene's full finger load."""
+    from .plant.facts import loaded_natural_frequencies
+    from .plant.facts import model_facts as beam_facts
+
+    mats = _materials(scene)
+    out = {}
+    for g in scene.actuator:
+        if g.type != "bimorph":
+            out[g.name] = {"type": g.type, "note": "no model facts for this actuator type yet"}
+            continue
+        fe = beam_model(g, mats)
+        facts = beam_facts(fe)
+        finger = finger_load(scene, g)
+        if finger is not None:
+            facts["loaded_natural_frequencies_hz"] = loaded_natural_frequencies(fe, finger, 4)
+        else:
+            facts["loaded_natural_frequencies_hz"] = list(facts["natural_frequencies_hz"])
+        out[g.name] = facts
+    return out
+
+
+class Rig:
+    """What :func:`build` returns. Call :meth:`advance` once per block."""
+
+    def __init__(self, scene):
+        self.scene = scene
+        self.fs = float(scene.timing.fs)
+        self.block = int(scene.timing.block)
+        self.needs = needs(scene)
+        names, groups, limits = [], [], []
+        for g in scene.actuator:
+            n = g.grid[0] * g.grid[1]
+            names += [f"{g.name}.{i}" for i in range(n)]
+            groups += [g.name] * n
+            limits += [g] * n
+        self.channel_names, self.channel_groups = names, groups
+        self.n_channels = len(names)
+        self.out = np.zeros((self.n_channels, self.block))
+        self.device = None
+        self.truth = None
+        self.sensed = np.zeros((0, self.block))
+        self._group_caps = {}
+        if scene.io.backend == "sim":
+            self._build_sim(scene)
+        caps = [self._group_caps.get(g, 1e-9) for g in groups]
+        self._build_tones(scene)
+        self._build_limiter(limits, caps)
+        self._compile()
+
+    # --- construction -----------------------------------------------------------------------
+
+    def _build_sim(self, scene):
+        from .io.sim import SimDevice
+        from .plant import TRUTH_NAMES
+        from .plant.bimorph import BimorphPlant, SimGroup
+        from .plant.frontend import Amplifier, CurrentSense
+
+        mats = _materials(scene)
+        groups, ch0, row0 = [], 0, 0
+        self.sensed_names = []
+        for gi, g in enumerate(scene.actuator):
+            n = g.grid[0] * g.grid[1]
+            fe = beam_model(g, mats)
+            s = g.sense
+            sense = CurrentSense(s.shunt, s.aa_cutoff, s.aa_order, s.bits, s.full_scale, s.noise,
+                                 seed=scene.io.seed + 7919 * gi)
+            plant = BimorphPlant(fe, Amplifier(g.amplifier.bandwidth), sense, finger_load(scene, g),
+                                 n_modes=g.beam.modes)
+            sim = SimGroup(plant, self.fs, n, max_block=max(self.block, 1))
+            rows = n * plant.n_seg
+            groups.append((sim, slice(ch0, ch0 + n), slice(row0, row0 + rows)))
+            self.sensed_names += [f"{g.name}.{i}.seg{j}" for i in range(n) for j in range(plant.n_seg)]
+            self._group_caps[g.name] = fe.capacitance()
+            ch0, row0 = ch0 + n, row0 + rows
+        self.truth_names = TRUTH_NAMES
+        self.sensed = np.zeros((row0, self.block))
+        self.device = SimDevice(groups, self.out, self.sensed, len(TRUTH_NAMES))
+        self.truth = self.device.truth
+
+    def _build_tones(self, scene):
+        tones, chans, freqs, amps = [], [], [], []
+        offsets = {}
+        k = 0
+        for g in scene.actuator:
+            offsets[g.name] = k
+            k += g.grid[0] * g.grid[1]
+        self._schedule: dict[int, list] = {}
+        for t in scene.stimulus.tones if scene.stimulus.kind == "tones" else ():
+            ch = offsets[t.actuator] + t.channel
+            receptor = perception.auto_receptor(t.freq) if t.receptor == "auto" else t.receptor
+            thr = perception.threshold_m(t.freq, receptor) if receptor else math.nan
+            tgt = perception.target_m(t.freq, receptor, scene.control.margin_db) if receptor else math.nan
+            fr = (t.freq - t.beat / 2, t.freq + t.beat / 2) if t.beat > 0 else (t.freq,)
+            amp = t.voltage / len(fr)  # a beat pair's envelope peaks at the pair amplitude
+            idx = tuple(range(len(freqs), len(freqs) + len(fr)))
+            tones.append(Tone(ch, t.freq, t.beat, t.voltage, receptor, thr, tgt, t.start, idx))
+            chans += [ch] * len(fr)
+            freqs += list(fr)
+            amps += [amp] * len(fr)
+            # Every tone switches on ramped over one block at the block holding its start time.
+            kb = int(math.floor(t.start * self.fs / self.block))
+            self._schedule.setdefault(kb, []).extend((i, amp) for i in idx)
+        self.tones = tones
+        self.targets_um = np.full(self.n_channels, np.nan)
+        for tone in tones:
+            self.targets_um[tone.channel] = tone.target_m * 1e6
+        self.bank = None
+        if freqs:
+            from .dsp import OscillatorBank
+
+            self.bank = OscillatorBank(self.n_channels, np.array(chans), self.fs, np.array(freqs),
+                                       np.zeros(len(freqs)), ramp=self.block)
+
+    def _build_limiter(self, groups, caps):
+        from .safety import Limiter
+
+        lim = [g.limits for g in groups]
+        self.limiter = Limiter(
+            self.fs,
+            max_voltage=[g.max_voltage for g in groups],
+            slew=[x.slew for x in lim], current=[x.current for x in lim], capacitance=caps,
+            temperature=[x.temperature for x in lim], ambient=[x.ambient for x in lim],
+            loss_tangent=[x.loss_tangent for x in lim], thermal_resistance=[x.thermal_resistance for x in lim],
+            thermal_tau=[x.thermal_tau for x in lim],
+        )
+
+    def _compile(self):
+        """Compile (or load from numba's cache) every kernel now, not in the first block."""
+        from . import _step
+
+        if self.bank is not None:
+            self._step = _step.step_tones
+            self._step_args = (*self.bank.args, *self.limiter.args, self.out)
+        else:
+            self._step = _step.step_silent
+            self._step_args = (*self.limiter.args, self.out)
+        saved = [a.copy() for a in self._step_args]
+        self._step(*self._step_args)
+        if self.device is not None:
+            self.device.compile()
+        for a, s in zip(self._step_args, saved):
+            a[...] = s
+
+    # --- per block ----------------------------------------------------------------------------
+
+    def apply_schedule(self, k: int) -> None:
+        """Write the parameter changes due at block ``k`` (ramped across that block)."""
+        for i, amp in self._schedule.get(k, ()):
+            self.bank.set(i, amp=amp)
+
+    def advance(self) -> int:
+        """One block: read the sensed currents, synthesize and limit, write; status bits."""
+        status = 0
+        if self.device is not None:
+            status |= self.device.read()
+        status |= self._step(*self._step_args)
+        if self.device is not None:
+            status |= self.device.write()
+        return status
+
+    # --- trace ----------------------------------------------------------------------------------
+
+    def trace_signals(self) -> dict:
+        sig = {"drive": ("V", self.n_channels), "sensed": ("A", self.sensed.shape[0])}
+        if self.truth is not None:
+            sig.update({"tip_um": ("um", self.n_channels), "tip_velocity": ("m/s", self.n_channels),
+                        "tip_force": ("N", self.n_channels), "voltage": ("V", self.n_channels)})
+        sig["target_um"] = ("um", self.n_channels, 0)
+        sig["estimated_um"] = ("um", self.n_channels, 0)
+        sig["temperature"] = ("degC", self.n_channels, 0)
+        return sig
+
+    def record(self, rec, status: int, compute_us: float) -> None:
+        rec["status"] = status
+        rec["compute_us"] = compute_us
+        rec["drive"][...] = self.out
+        rec["sensed"][...] = self.sensed
+        if self.truth is not None:
+            rec["tip_um"][...] = self.truth[:, 0, :]
+            rec["tip_um"] *= 1e6
+            rec["tip_velocity"][...] = self.truth[:, 1, :]
+            rec["tip_force"][...] = self.truth[:, 2, :]
+            rec["voltage"][...] = self.truth[:, 3, :]
+        rec["target_um"][...] = self.targets_um
+        rec["estimated_um"][...] = np.nan  # no observer yet (self-sensing issue)
+        rec["temperature"][...] = self.limiter.temperature
+
+
+def build(scene) -> Rig:
+    """Construct, import and compile exactly what ``scene`` needs.
+
+    Raises
+    ------
+    SceneError
+        If the scene needs a component this version of rtctl does not have.
+    """
+    check_available(scene)
+    return Rig(scene)
