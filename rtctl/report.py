@@ -78,7 +78,7 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             "error_pct": None,
             "settle_ms": None,
             "v_peak": float(np.max(np.abs(drive[ch]))) if n else 0.0,
-            "limited": bool(rig.limiter.counts[ch].sum() > 0),
+            "limited": bool(rig.limiter.counts[:, ch].sum() > 0),
         }
         if tip is not None and freqs:
             win = analysis_window(n / fs, freqs)

@@ -46,9 +46,9 @@ STATUS_NAMES = {
     DEADLINE_MISSED: "block deadline missed",
 }
 
-# limiter state columns
+# limiter state rows
 _V, _T, _FADE_FROM = 0, 1, 2
-# limiter parameter columns
+# limiter parameter rows
 _VMAX, _DVMAX, _HEAT, _RTH, _ALPHA, _TAMB, _TMAX = range(7)
 
 
@@ -56,56 +56,75 @@ _VMAX, _DVMAX, _HEAT, _RTH, _ALPHA, _TAMB, _TMAX = range(7)
 def limit_block(x, state, params, fade, counts):
     """Limit ``x`` (n_channels, n) in place; return the OR of status bits raised.
 
-    ``state`` (n_channels, 3): last output V, temperature degC, fade start V.
-    ``params`` (n_channels, 7): see the column constants. ``fade`` int64 (2,): samples done and
-    length of a shutdown fade (length 0 = running). ``counts`` int64 (n_channels, 2): samples
-    voltage-limited and slew-limited so far.
+    ``state`` (3, n_channels): last output V, temperature degC, fade start V.
+    ``params`` (7, n_channels): see the row constants (``_ALPHA`` holds 1 / (fs tau_th)).
+    ``fade`` int64 (2,): samples done and length of a shutdown fade (length 0 = running).
+    ``counts`` int64 (2, n_channels): samples voltage-limited and slew-limited so far.
+
+    Per channel, passes over the contiguous row: (1) NaN/Inf -> 0 or the fade, voltage clip;
+    (2) the largest step, which needs no recursion; only if it exceeds the slew bound does
+    (3) the sequential slew clamp run. Requests that respect the slew bound, the normal case,
+    thus cost no dependency chain. The heat of the block is integrated once per block: the
+    thermal time constant (seconds) is far longer than a block (under a millisecond).
     """
-    status = 0
     n_ch, n = x.shape
     fading = fade[1] > 0
+    status = 0
     for c in range(n_ch):
-        v_prev = state[c, _V]
-        temp = state[c, _T]
-        vmax = params[c, _VMAX]
-        dvmax = params[c, _DVMAX]
-        heat = params[c, _HEAT]
-        rth = params[c, _RTH]
-        alpha = params[c, _ALPHA]
-        tamb = params[c, _TAMB]
-        for i in range(n):
-            v = x[c, i]
-            if not math.isfinite(v):
-                v = 0.0
-                status |= NONFINITE
-            if fading:
+        row = x[c]
+        vmax = params[_VMAX, c]
+        dvmax = params[_DVMAX, c]
+        v0 = state[_V, c]
+        if fading:  # the request is ignored: fade from the last output to zero
+            f0 = state[_FADE_FROM, c]
+            for i in range(n):
                 k = fade[0] + i + 1
-                w = 1.0 - k / fade[1] if k < fade[1] else 0.0
-                v = state[c, _FADE_FROM] * w
-            if v > vmax:
-                v = vmax
-                counts[c, 0] += 1
-                status |= LIMIT_VOLTAGE
-            elif v < -vmax:
-                v = -vmax
-                counts[c, 0] += 1
-                status |= LIMIT_VOLTAGE
-            dv = v - v_prev
-            if dv > dvmax:
-                v = v_prev + dvmax
-                counts[c, 1] += 1
+                row[i] = f0 * (1.0 - k / fade[1]) if k < fade[1] else 0.0
+        else:
+            # v * 0 is 0 for finite v and NaN for NaN/Inf: one vectorizable probe instead of a
+            # branch per sample (a per-sample isfinite stops LLVM vectorizing the loop).
+            probe = 0.0
+            for i in range(n):
+                probe += row[i] * 0.0
+            if probe != 0.0:
+                status |= NONFINITE
+                for i in range(n):
+                    if not math.isfinite(row[i]):
+                        row[i] = 0.0
+        n_v = 0
+        for i in range(n):
+            v = row[i]
+            n_v += (v > vmax) | (v < -vmax)
+            row[i] = min(max(v, -vmax), vmax)
+        if n_v:
+            counts[0, c] += n_v
+            status |= LIMIT_VOLTAGE
+        step = abs(row[0] - v0)
+        for i in range(1, n):
+            step = max(step, abs(row[i] - row[i - 1]))
+        if step > dvmax:
+            n_s = 0
+            prev = v0
+            for i in range(n):
+                v = row[i]
+                lo = prev - dvmax
+                hi = prev + dvmax
+                n_s += (v > hi) | (v < lo)
+                prev = min(max(v, lo), hi)
+                row[i] = prev
+            if n_s:
+                counts[1, c] += n_s
                 status |= LIMIT_SLEW
-            elif dv < -dvmax:
-                v = v_prev - dvmax
-                counts[c, 1] += 1
-                status |= LIMIT_SLEW
-            p = heat * abs(v * (v - v_prev))
-            temp += alpha * (tamb + rth * p - temp)
-            v_prev = v
-            x[c, i] = v
-        state[c, _V] = v_prev
-        state[c, _T] = temp
-        if temp > params[c, _TMAX]:
+        heat = abs(row[0] * (row[0] - v0))
+        for i in range(1, n):
+            heat += abs(row[i] * (row[i] - row[i - 1]))
+        power = params[_HEAT, c] * heat / n
+        a = -math.expm1(-n * params[_ALPHA, c])
+        t = state[_T, c]
+        t += a * (params[_TAMB, c] + params[_RTH, c] * power - t)
+        state[_T, c] = t
+        state[_V, c] = row[n - 1]
+        if t > params[_TMAX, c]:
             status |= OVERTEMP
     if fading:
         fade[0] += n
@@ -147,17 +166,17 @@ class Limiter:
         # The current limit is a slope limit on a capacitor: |dV/dt| <= I_max / C.
         slope = np.minimum(b(slew), b(current) / cap)
         self.fs = float(fs)
-        self.params = np.empty((n, 7))
-        self.params[:, _VMAX] = vmax
-        self.params[:, _DVMAX] = slope / self.fs
-        self.params[:, _HEAT] = 0.5 * np.pi * b(loss_tangent) * cap * self.fs
-        self.params[:, _RTH] = b(thermal_resistance)
-        self.params[:, _ALPHA] = -np.expm1(-1.0 / (self.fs * b(thermal_tau)))
-        self.params[:, _TAMB] = b(ambient)
-        self.params[:, _TMAX] = b(temperature)
-        self.state = np.zeros((n, 3))
+        self.params = np.empty((7, n))
+        self.params[_VMAX] = vmax
+        self.params[_DVMAX] = slope / self.fs
+        self.params[_HEAT] = 0.5 * np.pi * b(loss_tangent) * cap * self.fs
+        self.params[_RTH] = b(thermal_resistance)
+        self.params[_ALPHA] = 1.0 / (self.fs * b(thermal_tau))
+        self.params[_TAMB] = b(ambient)
+        self.params[_TMAX] = b(temperature)
+        self.state = np.zeros((3, n))
         self.fade = np.zeros(2, dtype=np.int64)
-        self.counts = np.zeros((n, 2), dtype=np.int64)
+        self.counts = np.zeros((2, n), dtype=np.int64)
         self.reset()
 
     @property
@@ -171,7 +190,7 @@ class Limiter:
 
     def shutdown(self, n_samples: int) -> None:
         """Fade every output linearly from its last value to 0 V over ``n_samples``."""
-        self.state[:, _FADE_FROM] = self.state[:, _V]
+        self.state[_FADE_FROM] = self.state[_V]
         self.fade[0] = 0
         self.fade[1] = max(int(n_samples), 1)
 
@@ -182,15 +201,15 @@ class Limiter:
 
     @property
     def temperature(self) -> np.ndarray:
-        return self.state[:, _T]
+        return self.state[_T]
 
     @property
     def last(self) -> np.ndarray:
-        return self.state[:, _V]
+        return self.state[_V]
 
     def reset(self) -> None:
         self.state[:] = 0.0
-        self.state[:, _T] = self.params[:, _TAMB]
+        self.state[_T] = self.params[_TAMB]
         self.fade[:] = 0
         self.counts[:] = 0
 
