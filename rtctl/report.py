@@ -34,7 +34,13 @@ def analysis_window(duration: float, freqs) -> float:
 
 
 def settle_time(x, t, freqs, start, final) -> float | None:
-    """Seconds from ``start`` until the amplitude stays within SETTLE_BAND of ``final``."""
+    """Seconds from ``start`` until the amplitude stays within SETTLE_BAND of ``final``.
+
+    The amplitude is fitted over windows of one period of the lowest tone (at least 4 ms) at
+    half-window steps; the result is the end of the first window from which every later one is
+    within the band, so it is an upper bound with a resolution of half a window. None if the
+    amplitude never settles in the run.
+    """
     if not final > 0:
         return None
     w = max(1.0 / min(freqs), 4e-3)
@@ -47,8 +53,8 @@ def settle_time(x, t, freqs, start, final) -> float | None:
         amps.append(fit_amplitudes(x[m], t[m], freqs).sum())
     ok = np.abs(np.asarray(amps) / final - 1.0) <= SETTLE_BAND
     bad = np.flatnonzero(~ok)
-    if bad.size == 0:
-        return 0.0
+    if bad.size == 0:  # settled in the first window: its end is the best bound we can give
+        return float(edges[0] + w - start)
     if bad[-1] == ok.size - 1:
         return None
     return float(edges[bad[-1] + 1] + w - start)
