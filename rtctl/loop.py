@@ -133,11 +133,16 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     finally:
         bar.close()
         wall = time.perf_counter() - t_start
-        # Whatever happened, fade every output to zero over one more block (recorded).
+        # Whatever happened, fade every output to zero (one block, longer if the slew limit
+        # needs it), recording the fade blocks.
         rig.limiter.shutdown(block)
-        status = rig.advance()
+        while True:
+            status = rig.advance()
+            if writer is not None:
+                rig.record(writer.next(), status, 0.0)
+            if rig.limiter.done:
+                break
         if writer is not None:
-            rig.record(writer.next(), status, 0.0)
             writer.close()
     bt = times[:run_blocks] if run_blocks else np.zeros(1)
     summary = {

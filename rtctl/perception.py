@@ -39,11 +39,12 @@ def threshold_m(freq: float, receptor: str) -> float:
 def auto_receptor(freq: float) -> str | None:
     """The receptor a tone at ``freq`` is meant for when a scene does not say.
 
-    Below 5 Hz the slow-adapting channels respond and the Pacinian channel does not; a scene that
-    wants to address Merkel or Meissner above that names the receptor explicitly. The rule: the
-    receptor with the *highest* threshold whose band holds ``freq``, i.e. the one that needs the
-    largest stroke, so that a tone chosen for a slow receptor is judged against its own threshold
-    rather than silently against the Pacinian one. None outside every band.
+    The rule: the receptor with the *highest* threshold whose band holds ``freq``, i.e. the one
+    that needs the largest stroke, so that a tone chosen for a slow receptor is judged against its
+    own threshold rather than silently against the Pacinian one. With seed 000's bands that is
+    Ruffini up to 15 Hz, Merkel to 30 Hz, Meissner to 300 Hz and Pacinian only from 300 to
+    1000 Hz: a scene that means the Pacinian channel at 250 Hz, or Meissner at 20 Hz, names the
+    receptor. None outside every band.
     """
     cands = [(th, name) for name, (lo, hi, th) in RECEPTORS.items() if lo <= freq <= hi]
     return max(cands)[1] if cands else None

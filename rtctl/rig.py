@@ -129,12 +129,23 @@ class Rig:
         self._group_caps = {}
         if scene.io.backend == "sim":
             self._build_sim(scene)
-        caps = [self._group_caps.get(g, 1e-9) for g in groups]
+        caps = [self._capacitance(scene, g) for g in groups]
         self._build_tones(scene)
         self._build_limiter(limits, caps)
         self._compile()
 
     # --- construction -----------------------------------------------------------------------
+
+    def _capacitance(self, scene, name: str) -> float:
+        """The actuator's free capacitance (the limiter's current-to-slope factor), from its
+        model whatever the backend: the same ``limits.current`` must mean the same slope."""
+        if name not in self._group_caps:
+            g = scene.group(name)
+            if g.type != "bimorph":
+                raise SceneError(f"actuator.{name}: the limiter needs the capacitance of a {g.type!r} "
+                                 "actuator, which this version cannot model yet")
+            self._group_caps[name] = beam_model(g, _materials(scene)).capacitance()
+        return self._group_caps[name]
 
     def _build_sim(self, scene):
         from .io.sim import SimDevice

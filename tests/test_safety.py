@@ -109,3 +109,19 @@ def test_rejects_unsafe_parameters():
 
 def test_describe_names_bits():
     assert safety.describe(NONFINITE | LIMIT_VOLTAGE) == ["voltage limited", "non-finite drive request (NaN/Inf) replaced by 0 V"]
+
+
+def test_shutdown_lengthens_the_fade_when_the_slew_limit_needs_it():
+    fs, slew = 48000.0, 1e5  # 2.08 V per sample: a 100 V output needs 48 samples to reach 0
+    lim = make(1, fs=fs, slew=slew, current=10.0, max_voltage=200.0)
+    x = np.full((1, 200), 100.0)
+    lim.process(x)
+    assert lim.last[0] == 100.0
+    n = lim.shutdown(32)
+    assert n == int(np.floor(100.0 / (slew / fs))) + 1
+    y = np.zeros((1, 32))
+    assert not (lim.process(y) & LIMIT_SLEW)  # the fade itself never needs clamping
+    assert not lim.done and y[0, -1] > 0.0
+    z = np.zeros((1, 32))
+    assert not (lim.process(z) & LIMIT_SLEW)
+    assert lim.done and z[0, -1] == 0.0

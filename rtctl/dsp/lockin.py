@@ -152,7 +152,8 @@ class LockIn:
     ===========  ============  ==================  =====================
 
     so use ``W = m fs / f_b`` (:func:`beat_window`); with ``f_c / f_b`` a multiple of 1/2 the
-    mirrors vanish too, otherwise they stay below ``fs / (2 pi f_c W)``.
+    mirrors vanish too, otherwise they stay below ``fs / (pi (2 f_c - f_b) W)`` (the mirror of the
+    lower tone sits at ``2 f_c - f_b`` away).
 
     For the loop: ``lockin_process(*lockin.args, x, out)`` with
     ``lockin.args == (ref, pending, chan, acc, ring)``.

@@ -27,11 +27,12 @@ way (layers above the neutral axis are poled opposite to those below, for either
 * ``parallel``: every piezo layer sees the full port voltage, ``V_i = V`` (``f_i = 1``).
 * ``series``: the piezo layers are stacked in series between the two port electrodes, with
   floating equipotential electrodes (a conductive shim, or bonded electrodes) between them that
-  carry no net charge. For identical layers this is ``V_i = V / n_piezo``. For unequal layers the
-  division follows from charge balance: ``f = C_l^-1 1 / (1^T C_l^-1 1)`` (the capacitive
+  carry no net charge. For two identical layers this is ``V_i = V / 2``; in general (unequal
+  layers, or three or more: their moments per volt differ with the distance from the neutral
+  axis, e.g. 0.324/0.324/0.351 for three identical layers) the division follows from charge balance: ``f = C_l^-1 1 / (1^T C_l^-1 1)`` (the capacitive
   divider), and keeping the floating electrodes' charge balanced costs an extra rotational
-  stiffness between the segment's end slopes (``Section.electrical_stiffness``, zero for
-  identical layers). This is the exact static condensation of the floating electrodes.
+  stiffness between the segment's end slopes (``Section.electrical_stiffness``, zero only when
+  every layer's moment per volt is the same, e.g. two identical layers). This is the exact static condensation of the floating electrodes.
 
 Here ``C_l = diag(c_i) + n n^T / EA`` is the per-length capacitance of the layers with the beam
 held in bending but free to stretch, ``c_i = eps33S_i w / t_i``. The axial stretch is condensed
@@ -295,7 +296,8 @@ class Section:
     electrical_stiffness : float
         Stiffening from the floating inter-layer electrodes of a series stack, N m^2; a segment of
         length ``l`` gets a rotational spring ``electrical_stiffness / l`` between its end slopes.
-        Zero for ``parallel`` and for identical series layers.
+        Zero for ``parallel``, and for series stacks whose layers all have the same moment per
+        volt (two identical layers); e.g. 3.9 % of EI for three identical layers.
     fractions : tuple of float
         Share ``f_i`` of the port voltage across each layer (0 for passive layers).
     """
