@@ -89,7 +89,10 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
         if tip is not None and freqs:
             win = analysis_window(n / fs, freqs)
             m = t >= t[-1] - win
-            amp = float(fit_amplitudes(tip[ch, m], t[m], freqs).sum())
+            amp = float(fit_amplitudes(tip[ch, m], t[m], freqs).sum()) if np.all(np.isfinite(tip[ch])) else math.nan
+            if not math.isfinite(amp):  # a plant fault left NaN in the truth: nothing to report
+                rows.append(row)
+                continue
             row["true_um"] = amp
             if main.target_m and math.isfinite(main.target_m):
                 row["error_pct"] = 100.0 * (amp * 1e-6 - main.target_m) / main.target_m

@@ -194,7 +194,7 @@ SCENE = Table(
         "finger": Table(
             {
                 "contact": Key("bool", True, "", "a finger rests on the actuators"),
-                "preload": Key("float", 0.49, "N", "static finger force", 0.0, 20.0),
+                "preload": Key("float", 0.49, "N", "static finger force; the Maxwell tables below are the load at this preload (no model derives them from it yet)", 0.0, 20.0),
                 "lateral": _maxwell("generalized Maxwell load for lateral (tangential) motion"),
                 "normal": _maxwell("generalized Maxwell load for normal (indenting) motion"),
             },
