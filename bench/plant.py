@@ -2,11 +2,12 @@
 
 Runs ``SimGroup`` (48 channels, 4 modes, 3-branch finger, amplifier, 2-segment current sense:
 16 states) at 48 kHz in blocks of 32, called the way the loop calls it (from a numba function),
-and compares with baselines in the same process: a numpy matmul per sample over all channels
-(dense discrete model) and ``scipy.signal.dlsim`` per channel. Compile time is reported apart.
-Prints one JSON object, then a table.
+and compares with baselines in the same process: the same kernel running the dense fallback
+realization (``form="dense"``), a numpy matmul per sample over all channels (dense discrete
+model) and ``scipy.signal.dlsim`` per channel. Compile time is reported apart. Prints one JSON
+object, then a table.
 
-    python bench/plant.py [--channels 48] [--seconds 2]
+    python bench/plant.py [--channels 48] [--seconds 2] [--chunk 8]
 """
 
 import argparse
@@ -31,13 +32,20 @@ def _run_blocks(args, drive, sensed, truth, n_blocks):
     return status
 
 
-def build(n_channels):
+def build(n_channels, chunk=8, form="auto"):
     pzt = BUILTIN["PZT-5A"]
     fe = build_fe(BeamSpec(15e-3, 1.5e-3, (Layer(pzt, 0.3e-3), Layer(pzt, 0.3e-3)),
                            "parallel", (0.5, 0.5), 0.01))
     finger = MaxwellLoad(1e-4, 300.0, ((300.0, 0.004), (150.0, 0.07), (80.0, 1.4)))
     plant = BimorphPlant(fe, Amplifier(20e3), CurrentSense(100.0, 15e3), finger, n_modes=4)
-    return SimGroup(plant, FS, n_channels)
+    return SimGroup(plant, FS, n_channels, chunk=chunk, form=form)
+
+
+def output_macs(group):
+    """Multiply-adds per channel-sample of the output stage (tiles of the plan + feedthrough)."""
+    plan = group.args[5]
+    return int(sum(nr * w for nr, w in zip(plan[:, 0], plan[:, 4]))) + \
+        int(np.count_nonzero(group.args[4]))
 
 
 def best_of(fn, repeats):
@@ -53,10 +61,11 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--channels", type=int, default=48)
     ap.add_argument("--seconds", type=float, default=2.0)
+    ap.add_argument("--chunk", type=int, default=8, help="SimGroup chunk (default: its default)")
     a = ap.parse_args(argv)
     nc = a.channels
     t0 = time.perf_counter()
-    group = build(nc)
+    group = build(nc, a.chunk)
     build_s = time.perf_counter() - t0
     rng = np.random.default_rng(0)
     drive = np.ascontiguousarray(rng.normal(size=(nc, BLOCK)) * 20.0)
@@ -82,6 +91,19 @@ def main(argv=None):
     best_quiet, _ = best_of(lambda: _run_blocks(group.args, zeros, sensed, truth, n_blocks), 3)
     ns_quiet = best_quiet / samples * 1e9
 
+    # Baseline 0: the same kernel on the dense fallback realization (16 x 16 state matrix,
+    # dense output matrix), interleaved with the modal runs.
+    dense = build(nc, a.chunk, form="dense")
+    _run_blocks(dense.args, drive, sensed, truth, 1)
+    modal_t, dense_t = [], []
+    for _ in range(5):
+        modal_t.append(best_of(lambda: _run_blocks(group.args, drive, sensed, truth,
+                                                   n_blocks // 4), 1)[0])
+        dense_t.append(best_of(lambda: _run_blocks(dense.args, drive, sensed, truth,
+                                                   n_blocks // 4), 1)[0])
+    ns_dense = float(np.median(dense_t)) / (n_blocks // 4 * BLOCK * nc) * 1e9
+    ns_modal_paired = float(np.median(modal_t)) / (n_blocks // 4 * BLOCK * nc) * 1e9
+
     # Baseline 1: numpy, dense discrete model, all channels per sample (x: states x channels).
     sysd = group.sysd
     A, B, C, D = sysd.A, sysd.B[:, 0], sysd.C, sysd.D[:, 0]
@@ -105,12 +127,15 @@ def main(argv=None):
     out = {
         "fs": FS, "block": BLOCK, "channels": nc, "states": group.n_states,
         "outputs": len(TRUTH_NAMES) + group.n_seg, "form": group.modal.form,
-        "modal_cond": group.modal.cond,
+        "cascade": group.modal.is_cascade, "output_macs_per_channel_sample": output_macs(group),
+        "dense_output_macs_per_channel_sample": (len(TRUTH_NAMES) + group.n_seg) * group.n_states,
+        "chunk": a.chunk, "modal_cond": group.modal.cond,
         "build_s": build_s, "compile_s": compile_s,
         "ns_per_channel_sample": ns_kernel, "ns_per_channel_sample_median": med_kernel,
         "ns_per_channel_sample_from_python": ns_python,
         "ns_per_channel_sample_after_silence": ns_quiet,
         "plant_share_of_realtime": per_second, "realtime_factor_plant_only": 1.0 / per_second,
+        "baseline_dense_kernel_ns": ns_dense, "speedup_vs_dense_kernel": ns_dense / ns_modal_paired,
         "baseline_numpy_ns": ns_numpy, "baseline_dlsim_ns": ns_dlsim,
         "speedup_vs_numpy": ns_numpy / ns_kernel, "speedup_vs_dlsim": ns_dlsim / ns_kernel,
     }
@@ -120,12 +145,15 @@ def main(argv=None):
                     ("SimGroup kernel from njit (median)", med_kernel),
                     ("SimGroup.process from Python", ns_python),
                     ("after 2 s of silence (subnormal flush)", ns_quiet),
+                    ("same kernel, dense realization (median)", ns_dense),
                     ("numpy matmul per sample (dense)", ns_numpy),
                     ("scipy.signal.dlsim per channel", ns_dlsim)):
         print(f"{name:<42}{v:>20.2f}")
-    print(f"{nc} channels x {group.n_states} states ({group.modal.form}): "
-          f"{100 * per_second:.1f} % of one core in real time at {FS:.0f} Hz "
-          f"(x{1 / per_second:.0f}); compile {compile_s:.2f} s, build {build_s:.2f} s")
+    print(f"{nc} channels x {group.n_states} states ({group.modal.form}"
+          f"{', cascade' if group.modal.is_cascade else ''}, {output_macs(group)} output "
+          f"multiply-adds per channel-sample): {100 * per_second:.1f} % of one core in real time "
+          f"at {FS:.0f} Hz (x{1 / per_second:.0f}); compile {compile_s:.2f} s, build "
+          f"{build_s:.2f} s")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 """Plain numpy/loop twins of the kernels in ``rtctl.plant._kernels`` (as stumpy's tests/naive.py).
 
 They use the plain state-space form ``x[k+1] = A x[k] + b u[k]``, ``y = C x + d u`` per channel,
-with the same subnormal flush, and the same ADC arithmetic written the obvious way.
+with the same subnormal flush, and the same ADC arithmetic written the obvious way. The modal
+kernels run with unit input gains (``ModalForm.unit_input``): their twins take ``b = unit_b``.
 """
 
 import numpy as np
@@ -21,6 +22,48 @@ def modal_matrix(pairs, reals):
         A[i + 1, i] = -om
     A[2 * n_pairs:, 2 * n_pairs:] = np.diag(reals)
     return A
+
+
+def unit_b(n_pairs, n_real):
+    """Input vector of a modal form with unit input gains: ``(1, 0)`` per pair, 1 per real."""
+    b = np.zeros(2 * n_pairs + n_real)
+    b[0:2 * n_pairs:2] = 1.0
+    b[2 * n_pairs:] = 1.0
+    return b
+
+
+def modal_steps(pairs, reals, X, src, dst, steps, ut, uoff, nc):
+    """Twin of ``lti_steps_modal``: ``steps`` samples, slot ``src + j nc`` -> ``dst + j nc``."""
+    n_pairs = pairs.shape[0]
+    for j in range(steps):
+        for ch in range(nc):
+            k0, k1 = src + j * nc + ch, dst + j * nc + ch
+            u = ut[uoff + j * nc + ch]
+            x = X[:, k0].copy()
+            new = np.empty_like(x)
+            for p, (sg, om) in enumerate(pairs):
+                x1, x2 = x[2 * p], x[2 * p + 1]
+                new[2 * p] = sg * x1 + om * x2 + u
+                new[2 * p + 1] = sg * x2 - om * x1
+            for r, lam in enumerate(reals):
+                new[2 * n_pairs + r] = lam * x[2 * n_pairs + r] + u
+            new[np.abs(new) < TINY] = 0.0
+            X[:, k1] = new
+
+
+def outputs(c, d, X, ut, uoff, L):
+    """Twin of ``lti_outputs`` (whatever the plan): ``c @ X[:, :L] + d u``, shape (n_out, L)."""
+    return c @ X[:, :L] + np.outer(d, ut[uoff:uoff + L])
+
+
+def rows(ys, n_truth, n_seg, truth, sensed, start, m, nc):
+    """Twin of ``rows_out``: the chunk ``ys[:, :m nc]`` (sample-major) into the house layouts."""
+    for r in range(n_truth + n_seg):
+        block = ys[r, :m * nc].reshape(m, nc).T          # (nc, m)
+        if r < n_truth:
+            truth[:, r, start:start + m] = block
+        else:
+            sensed[r - n_truth::n_seg, start:start + m] = block
 
 
 def lti_process(A, b, c, d, x, u):

@@ -228,3 +228,123 @@ def test_frequency_response_continuous_and_discrete_agree_below_nyquist():
     hc = sys.frequency_response(f)[:, 0, 0]
     hd = c2d(sys, 1 / 1e6).frequency_response(f)[:, 0, 0]  # ZOH at 1 MHz: delay 0.5 us
     np.testing.assert_allclose(hd * np.exp(1j * 2 * np.pi * f * 0.5e-6), hc, rtol=1e-5)
+
+
+def cascade():
+    """Amplifier -> two coupled modes -> two identical anti-alias filters (one per 'segment').
+
+    States: mode 1 (0, 1), mode 2 (2, 3), amplifier (4), filter 1 (5, 6), filter 2 (7, 8).
+    Outputs: displacement (modes + amplifier), voltage, filter 1, filter 2. Returns the system
+    and its blocks, upstream first.
+    """
+    w1, w2, wa, wf = 2 * np.pi * 1200, 2 * np.pi * 7500, 2 * np.pi * 20e3, 2 * np.pi * 15e3
+    A = np.zeros((9, 9))
+    A[0, 1], A[1, 0], A[1, 1] = 1.0, -w1**2, -0.02 * w1
+    A[2, 3], A[3, 2], A[3, 3] = 1.0, -w2**2, -0.02 * w2
+    A[1, 3], A[3, 1] = -50.0, -80.0            # the modes couple (damping not diagonal)
+    A[1, 4], A[3, 4] = 3e-4, -2e-4
+    A[4, 4] = -wa
+    for f, (vel, sign) in zip((5, 7), ((1, 1.0), (3, -1.0))):
+        A[f, f + 1], A[f + 1, f], A[f + 1, f + 1] = wf, -wf, -wf * np.sqrt(2)
+        A[f + 1, vel], A[f + 1, 4] = sign * 1e-3 * wf, -1e-9 * wa * wf
+    B = np.zeros((9, 1))
+    B[4, 0] = wa
+    B[6, 0] = B[8, 0] = 1e-9 * wa * wf
+    C = np.zeros((4, 9))
+    C[0, 0], C[0, 2], C[0, 4] = 1e-3, 1e-3, 2e-7
+    C[1, 4] = 1.0
+    C[2, 5] = C[3, 7] = 1.0
+    return StateSpace(A, B, C, np.zeros((4, 1))), ([4], [0, 1, 2, 3], [5, 6], [7, 8])
+
+
+def test_cascade_modal_has_exact_structural_zeros_and_the_same_io_map():
+    sys, blocks = cascade()
+    sysd = c2d(sys, DT)
+    mf = to_modal(sysd, blocks=blocks)
+    assert mf.form == "modal" and mf.is_cascade and "cascade" in mf.reason
+    assert mf.n_pairs == 4 and mf.n_real == 1
+    assert sorted(np.bincount(mf.state_block).tolist()) == [1, 2, 2, 4]
+    C, sb = mf.sys.C, mf.state_block
+    # What each output cannot depend on is exactly zero; what it can is not.
+    must_be_zero = {0: (2, 3), 1: (1, 2, 3), 2: (3,), 3: (2,)}
+    for o in range(4):
+        for k in range(4):
+            part = C[o, sb == k]
+            if k in must_be_zero[o]:
+                assert np.all(part == 0.0), (o, k)
+            else:
+                assert np.any(part != 0.0), (o, k)
+    # The same impulse response as the dense discrete model, output by output.
+    h, hm = impulse(sysd, 800), impulse(mf.sys, 800)
+    for o in range(4):
+        assert np.max(np.abs(hm[:, o] - h[:, o])) <= 1e-12 * np.max(np.abs(h[:, o]))
+    # x = T z along a trajectory.
+    u = np.random.default_rng(0).normal(size=300)
+    _, x = sysd.simulate(u)
+    _, z = mf.sys.simulate(u)
+    assert np.all(np.abs(z @ mf.T.T - x) <= 1e-12 * np.abs(x).max(axis=0))
+    # The plain eigendecomposition mixes the subsystems: same map, no exact zeros.
+    plain = to_modal(sysd)
+    assert not plain.is_cascade and np.count_nonzero(plain.sys.C) > np.count_nonzero(C)
+
+
+def test_unit_input_scales_each_mode_exactly():
+    sys, blocks = cascade()
+    sysd = c2d(sys, DT)
+    mf = to_modal(sysd, blocks=blocks)
+    mu = mf.unit_input()
+    b = mu.sys.B[:, 0]
+    assert np.array_equal(b[:2 * mu.n_pairs:2], np.ones(mu.n_pairs))
+    assert np.array_equal(b[1:2 * mu.n_pairs:2], np.zeros(mu.n_pairs))
+    assert np.array_equal(b[2 * mu.n_pairs:], np.ones(mu.n_real))
+    assert np.array_equal(mu.sys.A, mf.sys.A)
+    assert np.array_equal(mu.sys.C == 0.0, mf.sys.C == 0.0)   # structural zeros stay exact
+    h, hm = impulse(sysd, 800), impulse(mu.sys, 800)
+    for o in range(4):
+        assert np.max(np.abs(hm[:, o] - h[:, o])) <= 1e-12 * np.max(np.abs(h[:, o]))
+    u = np.random.default_rng(1).normal(size=300)
+    _, x = sysd.simulate(u)
+    _, z = mu.sys.simulate(u)
+    assert np.all(np.abs(z @ mu.T.T - x) <= 1e-12 * np.abs(x).max(axis=0))
+
+
+def test_unit_input_of_a_mode_the_input_does_not_reach():
+    """b = 0: the mode stays at zero from a zero state; scaled, it runs with input 1 but is
+    invisible (zero columns in C and T)."""
+    A = np.diag([0.9, 0.5, 0.7])
+    mf = to_modal(StateSpace(A, [[1.0], [0.0], [2.0]], [[1.0, 3.0, 1.0]], [[0.0]], dt=DT))
+    mu = mf.unit_input()
+    dead = np.flatnonzero(np.isclose(np.diag(mu.sys.A), 0.5))
+    assert mu.sys.B[dead, 0] == 1.0 and np.all(mu.sys.C[:, dead] == 0.0)
+    assert np.all(mu.T[:, dead] == 0.0)
+    np.testing.assert_allclose(impulse(mu.sys), impulse(mf.sys), rtol=1e-14, atol=0)
+
+
+def test_cascade_blocks_out_of_order_fall_back_to_the_plain_modal_form():
+    sys, blocks = cascade()
+    sysd = c2d(sys, DT)
+    mf = to_modal(sysd, blocks=blocks[::-1])
+    assert mf.form == "modal" and not mf.is_cascade
+    assert "cascade realization failed" in mf.reason and "upstream first" in mf.reason
+    np.testing.assert_allclose(impulse(mf.sys), impulse(sysd), rtol=0,
+                               atol=1e-12 * np.abs(impulse(sysd)).max())
+
+
+@pytest.mark.parametrize("blocks", [([0], [1]), ([0, 1], [1, 2]), ([0, 1, 2], []), "abc"],
+                         ids=["missing", "twice", "empty", "not-indices"])
+def test_cascade_blocks_must_partition_the_states(blocks):
+    sysd = StateSpace(np.diag([0.9, 0.5, 0.7]), np.ones((3, 1)), np.ones((1, 3)), [[0.0]], dt=DT)
+    with pytest.raises(ModelError, match="blocks"):
+        to_modal(sysd, blocks=blocks)
+
+
+def test_cascade_of_equal_coupled_poles_never_garbage():
+    """Two identical first-order stages in series share their pole and couple: a Jordan block.
+    The Sylvester equation is singular and the plain basis defective: dense, or an error."""
+    a = 2 * np.pi * 3000
+    sysd = c2d(StateSpace([[-a, 0.0], [a, -a]], [[a], [0.0]], [[0.0, 1.0]], [[0.0]]), DT)
+    mf = to_modal(sysd, blocks=([0], [1]))
+    assert mf.form == "dense" and "cascade realization failed" in mf.reason
+    np.testing.assert_allclose(impulse(mf.sys), impulse(sysd), rtol=1e-12, atol=1e-14)
+    with pytest.raises(ModelError, match="unsafe"):
+        to_modal(sysd, form="modal", blocks=([0], [1]))

@@ -50,6 +50,7 @@ TRUTH_NAMES = ("tip_m", "tip_velocity_m_s", "tip_force_n", "voltage_v")
 #: The real-time kernel of :class:`SimGroup`: ``sim_group_process(*group.args, drive, sensed,
 #: truth) -> int`` (callable from other numba functions).
 sim_group_process = _kernels.sim_group_process
+_X, _IPOS = 7, 13  # positions of the state trajectory and the noise positions in SimGroup.args
 
 
 class BimorphPlant:
@@ -77,6 +78,10 @@ class BimorphPlant:
     ----------
     sys : StateSpace
         Continuous model; input ``command_v``; outputs ``OUTPUT_NAMES``.
+    cascade : tuple of tuple of int
+        State indices of the subsystems in signal order (amplifier; beam modes and finger
+        branches; one anti-alias filter per segment). Nothing feeds back upstream, so ``A`` is
+        block lower-triangular in this order (``to_modal(..., blocks=cascade)``).
     modes_hz : ndarray
         Undamped frequencies of the retained modes of the loaded structure, Hz.
     n_seg : int
@@ -191,6 +196,9 @@ class BimorphPlant:
         self.modes_hz = f_all[keep].copy()
         self.residual_tip_per_volt = r_tip
         self.capacitance_feedthrough = cap.copy()  # Cp + Theta^T r: current per dV/dt, F
+        # Subsystems in signal order; nothing feeds back upstream (block lower-triangular A).
+        self.cascade = ((i_V,), tuple(range(i_V)),
+                        *(tuple(range(i_z + na * j, i_z + na * (j + 1))) for j in range(n_seg)))
 
     def frequency_response(self, freqs_hz):
         """Continuous-model response per commanded volt at each frequency.
@@ -212,8 +220,9 @@ class SimGroup:
 
     The plant is discretized exactly for a DAC staircase (``c2d(..., "zoh")`` at
     ``dt = 1 / fs``), put in modal form where that is safe (:func:`~rtctl.plant.lti.to_modal`,
-    else dense) and run by :func:`sim_group_process`. Sensed currents then go through the ADC
-    (seeded table noise, quantization, clipping).
+    per subsystem of ``plant.cascade`` so that the outputs skip the states they cannot depend
+    on; else dense) and run by :func:`sim_group_process`. Sensed currents then go through the
+    ADC (seeded table noise, quantization, clipping).
 
     Parameters
     ----------
@@ -229,7 +238,8 @@ class SimGroup:
     max_block : int
         Samples per internal block (scratch size); longer calls are split, results unchanged.
     chunk : int
-        Samples per recursion chunk (performance only).
+        Samples per recursion chunk (performance only; the state trajectory of a chunk is
+        kept, ``(chunk + 1) * n_channels * n_states`` floats).
     form : {"auto", "modal", "dense"}
     max_cond : float
         Passed to ``to_modal``.
@@ -239,7 +249,9 @@ class SimGroup:
     args : tuple of ndarray
         Kernel arguments in order: ``sim_group_process(*args, drive, sensed, truth)``.
     modal : ModalForm
-        The discrete realization that runs (``modal.form``, ``modal.cond``).
+        The discrete realization that runs (``modal.form``, ``modal.cond``). In modal form it is
+        built per subsystem of ``plant.cascade`` (``modal.is_cascade``; exact zeros in ``C``)
+        and scaled to unit input gains (:meth:`~rtctl.plant.lti.ModalForm.unit_input`).
     n_states, n_seg, n_channels, fs
 
     Examples
@@ -286,7 +298,9 @@ class SimGroup:
         s = plant.sys
         sel = StateSpace(s.A, s.B, s.C[rows], s.D[rows])
         self.sysd = c2d(sel, 1.0 / fs, "zoh")
-        self.modal = to_modal(self.sysd, max_cond=max_cond, form=form)
+        self.modal = to_modal(self.sysd, max_cond=max_cond, form=form, blocks=plant.cascade)
+        if self.modal.form == "modal":
+            self.modal = self.modal.unit_input()
         ms = self.modal.sys
         self.n_states = ms.n_states
         if self.modal.form == "modal":
@@ -296,6 +310,7 @@ class SimGroup:
             a, reals = np.ascontiguousarray(ms.A), np.zeros(0)
             code = _kernels.FORM_DENSE
         n_out = len(rows)
+        plan, coef = _kernels.output_plan(ms.C)
         mb, ch = int(max_block), int(chunk)
         lo, hi = sense.code_range
         S = n_seg * nc
@@ -306,15 +321,16 @@ class SimGroup:
             raise ModelError(f"{S} sensed streams exceed the noise table length {t2.size}")
         self._ipos0 = sense.noise_start(seed)
         self.args = (
-            np.array([code, len(TRUTH_NAMES), n_seg], dtype=np.int64),
+            np.array([code, len(TRUTH_NAMES), n_seg, ch, mb], dtype=np.int64),
             np.ascontiguousarray(a, dtype=np.float64),
             np.ascontiguousarray(reals, dtype=np.float64),
             np.ascontiguousarray(ms.B[:, 0]),
-            np.ascontiguousarray(ms.C),
             np.ascontiguousarray(ms.D[:, 0]),
-            np.zeros((self.n_states, (ch + 1) * nc)),           # X: state trajectory
-            np.zeros(mb * nc),                                   # ut: inputs of a block
-            np.zeros((n_out, mb * nc)),                          # ys: outputs of a block
+            plan,                                                # output tiles (C)
+            coef,
+            _kernels.aligned_zeros((self.n_states, (ch + 1) * nc)),  # X: state trajectory
+            _kernels.aligned_zeros((mb * nc,)),                      # ut: inputs of a block
+            _kernels.aligned_zeros((n_out, ch * nc)),                # ys: outputs of a chunk
             np.array([sense.shunt_ohm, 1.0 / sense.lsb_v, sense.lsb_v / sense.shunt_ohm, hi,
                       lo, sense.noise_rms_v / math.sqrt(2.0)]),
             np.concatenate([t1, t1[:S]]),
@@ -325,7 +341,7 @@ class SimGroup:
     @property
     def state(self) -> np.ndarray:
         """Current state in the realization's coordinates, shape (n_states, n_channels) (a view)."""
-        return self.args[6][:, :self.n_channels]
+        return self.args[_X][:, :self.n_channels]
 
     def physical_state(self) -> np.ndarray:
         """Current state in the plant's coordinates (``plant.sys.state_names``), a copy."""
@@ -333,8 +349,8 @@ class SimGroup:
 
     def reset(self) -> None:
         """Zero all states and restart the noise sequence (as just built)."""
-        self.args[6][:] = 0.0
-        self.args[12][:] = self._ipos0
+        self.args[_X][:] = 0.0
+        self.args[_IPOS][:] = self._ipos0
 
     def process(self, drive, sensed, truth) -> int:
         """Advance every channel by one block.

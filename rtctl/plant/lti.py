@@ -10,12 +10,15 @@ continuous sine is better served by ``"foh"`` or, exactly, by :func:`augment_ton
 :func:`to_modal` then rewrites the discrete recursion in real block-diagonal form (1x1 blocks for
 real eigenvalues, 2x2 rotation-scaling blocks for complex pairs), which costs ~4x fewer flops per
 sample than the dense form, but only when the eigenvector basis is well conditioned; otherwise it
-keeps the dense form and says so.
+keeps the dense form and says so. Given the plant's subsystems in signal order (``blocks``), it
+diagonalizes each subsystem on its own, so that every output keeps exact zeros on the states it
+cannot depend on; :meth:`ModalForm.unit_input` then scales each mode to unit input gain.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from dataclasses import replace as dataclasses_replace
 
 import numpy as np
 import scipy.linalg as sla
@@ -350,6 +353,11 @@ class ModalForm:
     n_pairs, n_real : int
     reason : str
         Why the form was chosen.
+    state_block : ndarray of int, shape (n_states,)
+        For a cascade realization (``to_modal(..., blocks=...)``): the index of the subsystem
+        (entry of ``blocks``) each modal state belongs to; ``-1`` everywhere otherwise. Output
+        ``o`` of a cascade realization has exact zeros in ``sys.C[o]`` on the states of every
+        subsystem it does not depend on.
     """
 
     sys: StateSpace
@@ -360,6 +368,49 @@ class ModalForm:
     n_pairs: int
     n_real: int
     reason: str
+    state_block: np.ndarray = None
+
+    def __post_init__(self):
+        if self.state_block is None:
+            object.__setattr__(self, "state_block", np.full(self.sys.n_states, -1, dtype=np.int64))
+
+    def unit_input(self) -> "ModalForm":
+        """The same realization with each mode scaled so that the input enters with gain 1.
+
+        A pair's basis can be multiplied by any complex number without changing its block
+        (rotation-scalings commute): with ``S_p = [[b1, -b2], [b2, b1]]`` (``x = S_p x'``) its
+        input vector becomes ``(1, 0)`` and a real mode's becomes 1. The recursion then needs no
+        input multiplies (``x1' = sigma x1 + omega x2 + u``). ``C`` and ``T`` absorb the scaling
+        (exact zeros stay exact). A mode the input does not reach (``b = 0``) cannot affect the
+        outputs from a zero state: it keeps input 1 with zero columns in ``C`` and ``T``.
+
+        Returns
+        -------
+        ModalForm
+            With ``sys.B`` exactly ``(1, 0)`` per pair and 1 per real mode (single input only).
+        """
+        if self.form != "modal" or self.sys.n_inputs != 1:
+            raise ModelError("unit_input() needs a single-input system in modal form")
+        n, n_pairs = self.sys.n_states, self.n_pairs
+        b = self.sys.B[:, 0]
+        S = np.zeros((n, n))
+        for p in range(n_pairs):
+            i = 2 * p
+            b1, b2 = b[i], b[i + 1]
+            S[i:i + 2, i:i + 2] = [[b1, -b2], [b2, b1]]
+        r = np.arange(2 * n_pairs, n)
+        S[r, r] = b[r]
+        B1 = np.zeros((n, 1))
+        B1[0:2 * n_pairs:2, 0] = 1.0
+        B1[2 * n_pairs:, 0] = 1.0
+        s = self.sys._replace(B=B1, C=self.sys.C @ S)
+        return dataclasses_replace(self, sys=s, T=self.T @ S,
+                                   reason=self.reason + "; unit input per mode")
+
+    @property
+    def is_cascade(self) -> bool:
+        """True if the realization was built per subsystem (exact structural zeros in ``C``)."""
+        return bool(np.any(self.state_block >= 0))
 
     def blocks(self):
         """Block coefficients for the modal kernel.
@@ -392,8 +443,140 @@ def _markov_error(a, b, c, a2, b2, c2, n_steps):
     return worst / scale if scale > 0 else worst
 
 
+def _real_basis(M):
+    """Real modal basis of a square matrix: ``(lam_pairs, lam_reals, V)`` or None.
+
+    ``V`` has one column pair ``[Re v, Im v]`` per complex pair (``Im lambda > 0``, sorted by
+    frequency), then one column per real eigenvalue (sorted descending); columns unit norm.
+    """
+    n = M.shape[0]
+    lam, vr = sla.eig(M)
+    tol = 1e3 * np.finfo(float).eps * max(1.0, float(np.max(np.abs(lam)))) if n else 0.0
+    upper = np.flatnonzero(lam.imag > tol)
+    upper = upper[np.argsort(np.abs(np.angle(lam[upper])), kind="stable")]
+    reals = np.flatnonzero(np.abs(lam.imag) <= tol)
+    reals = reals[np.argsort(-lam[reals].real, kind="stable")]
+    if 2 * upper.size + reals.size != n:
+        return None
+    V = np.empty((n, n))
+    for k, j in enumerate(upper):
+        v = vr[:, j]
+        v = v / np.linalg.norm(v)
+        # Rotate the complex vector so Re v and Im v are orthogonal: the best-conditioned real
+        # basis of the 2-D invariant subspace.
+        a2 = np.dot(v, v)
+        v = v * np.exp(-0.5j * np.angle(a2))
+        V[:, 2 * k], V[:, 2 * k + 1] = v.real, v.imag
+    base = 2 * upper.size
+    for k, j in enumerate(reals):
+        v = vr[:, j].real
+        V[:, base + k] = v / np.linalg.norm(v)
+    return lam[upper], lam[reals].real, V
+
+
+def _block_matrix(lam_pairs, lam_reals):
+    n_pairs = lam_pairs.size
+    n = 2 * n_pairs + lam_reals.size
+    Am = np.zeros((n, n))
+    for k, lam in enumerate(lam_pairs):
+        i = 2 * k
+        Am[i, i] = Am[i + 1, i + 1] = lam.real
+        Am[i, i + 1] = lam.imag
+        Am[i + 1, i] = -lam.imag
+    for k, lam in enumerate(lam_reals):
+        Am[2 * n_pairs + k, 2 * n_pairs + k] = lam
+    return Am
+
+
+def _check_blocks(blocks, n):
+    try:
+        blocks = [np.asarray(b, dtype=np.int64).ravel() for b in blocks]
+    except (TypeError, ValueError):
+        raise ModelError("blocks must be a sequence of state index lists") from None
+    allidx = np.concatenate(blocks) if blocks else np.zeros(0, dtype=np.int64)
+    if any(b.size == 0 for b in blocks) or allidx.size != n or \
+            not np.array_equal(np.sort(allidx), np.arange(n)):
+        raise ModelError(f"blocks must partition the {n} states (each index exactly once, no "
+                         "empty block)")
+    return blocks
+
+
+def _cascade_basis(Ab, blocks, zero_tol):
+    """Block-diagonalize a block lower-triangular matrix, then diagonalize each block.
+
+    ``Ab`` must not let block ``i`` depend on a later block ``j > i`` (``|Ab[b_i, b_j]| <=
+    zero_tol``). Returns ``(V, lam_pairs, lam_reals, state_block, feeds)`` or a reason string.
+    ``V = S blockdiag(V_k)`` with ``S`` block unit lower-triangular: ``S^-1 Ab S`` is block
+    diagonal. ``S[b_j, b_i]`` solves the Sylvester equation ``A_jj P - P A_ii = -(A_ji +
+    sum_{i<k<j} A_jk S_ki)``; where the right-hand side is exactly zero (no path from ``i`` to
+    ``j``, e.g. two decoupled identical filters), ``P = 0`` exactly and no equation is solved.
+    """
+    n = Ab.shape[0]
+    K = len(blocks)
+    for i in range(K):
+        for j in range(i + 1, K):
+            if np.max(np.abs(Ab[np.ix_(blocks[i], blocks[j])])) > zero_tol:
+                return (f"state block {i} depends on the later block {j}: blocks must be "
+                        "ordered upstream first")
+    feeds = np.zeros((K, K), dtype=bool)  # feeds[j, i]: block i drives block j directly
+    A = Ab.copy()
+    for i in range(K):
+        for j in range(i + 1, K):
+            blk = A[np.ix_(blocks[j], blocks[i])]
+            blk[np.abs(blk) <= zero_tol] = 0.0
+            A[np.ix_(blocks[j], blocks[i])] = blk
+            A[np.ix_(blocks[i], blocks[j])] = 0.0
+            feeds[j, i] = bool(np.any(blk))
+    S = np.eye(n)
+    for i in range(K):
+        bi = blocks[i]
+        for j in range(i + 1, K):
+            bj = blocks[j]
+            rhs = -A[np.ix_(bj, bi)]
+            for k in range(i + 1, j):
+                rhs = rhs - A[np.ix_(bj, blocks[k])] @ S[np.ix_(blocks[k], bi)]
+            if not np.any(rhs):
+                continue
+            try:
+                P = sla.solve_sylvester(A[np.ix_(bj, bj)], -A[np.ix_(bi, bi)], rhs)
+            except (np.linalg.LinAlgError, ValueError):
+                P = np.full(rhs.shape, np.nan)
+            if not np.all(np.isfinite(P)):
+                return f"blocks {i} and {j} share eigenvalues (singular Sylvester equation)"
+            S[np.ix_(bj, bi)] = P
+    pairs_cols, real_cols, lam_pairs, lam_reals, pair_blk, real_blk = [], [], [], [], [], []
+    for k, bk in enumerate(blocks):
+        basis = _real_basis(A[np.ix_(bk, bk)])
+        if basis is None:
+            return f"eigenvalues of block {k} do not split into real values and conjugate pairs"
+        lp, lr, Vk = basis
+        cols = np.zeros((n, bk.size))
+        cols[bk] = Vk
+        cols = S @ cols
+        pairs_cols.append(cols[:, :2 * lp.size])
+        real_cols.append(cols[:, 2 * lp.size:])
+        lam_pairs.append(lp)
+        lam_reals.append(lr)
+        pair_blk += [k] * (2 * lp.size)
+        real_blk += [k] * lr.size
+    V = np.hstack(pairs_cols + real_cols)
+    state_block = np.array(pair_blk + real_blk, dtype=np.int64)
+    return V, np.concatenate(lam_pairs), np.concatenate(lam_reals), state_block, feeds
+
+
+def _downstream(feeds):
+    """reach[i, j]: block j is block i or lies downstream of it (transitive closure)."""
+    K = feeds.shape[0]
+    reach = np.eye(K, dtype=bool)
+    for i in reversed(range(K)):
+        for j in range(i + 1, K):
+            if feeds[j, i]:
+                reach[i] |= reach[j]
+    return reach
+
+
 def to_modal(sysd: StateSpace, max_cond: float = 1e8, form: str = "auto",
-             markov_steps: int = 256, markov_tol: float = 1e-9) -> ModalForm:
+             markov_steps: int = 256, markov_tol: float = 1e-9, blocks=None) -> ModalForm:
     """Real block-diagonal (modal) form of a discrete system, or the dense form if unsafe.
 
     Steps: balance the state scaling (``scipy.linalg.matrix_balance``: the plant's states mix
@@ -410,6 +593,17 @@ def to_modal(sysd: StateSpace, max_cond: float = 1e8, form: str = "auto",
     Exactly repeated but non-defective eigenvalues (identical, decoupled filters) pass: only the
     eigenvector basis matters, not the eigenvalue spacing.
 
+    **Cascades** (``blocks``): a plant built from subsystems that only feed downstream (amplifier
+    -> mechanics -> anti-alias filters) has a block lower-triangular ``A``. Diagonalizing it as a
+    whole mixes the subsystems numerically, so every output picks up round-off-sized
+    coefficients on states it cannot depend on. With ``blocks`` the matrix is first
+    block-diagonalized (one Sylvester equation per coupled pair of subsystems), then each
+    subsystem is diagonalized on its own: the basis vectors of a subsystem are zero upstream of
+    it, and ``C`` has exact zeros on the states of every subsystem an output does not depend on
+    (set explicitly from the coupling graph, and verified by the Markov check), which a kernel
+    can skip. The same checks apply to the combined basis; if they fail, the plain
+    eigendecomposition is tried before falling back to dense.
+
     Parameters
     ----------
     sysd : StateSpace
@@ -419,6 +613,9 @@ def to_modal(sysd: StateSpace, max_cond: float = 1e8, form: str = "auto",
     form : {"auto", "modal", "dense"}
         ``"auto"`` falls back to dense when a check fails; ``"modal"`` raises ``ModelError``
         instead; ``"dense"`` skips the decomposition.
+    blocks : sequence of array_like of int, optional
+        A partition of the states into subsystems, upstream first: no block may depend on a
+        later one (``A[b_i, b_j] = 0`` for ``i < j``, to ``1e-14 |A|``).
 
     Returns
     -------
@@ -437,6 +634,8 @@ def to_modal(sysd: StateSpace, max_cond: float = 1e8, form: str = "auto",
     if form not in ("auto", "modal", "dense"):
         raise ModelError(f"form must be 'auto', 'modal' or 'dense', got {form!r}")
     n = sysd.n_states
+    if blocks is not None:
+        blocks = _check_blocks(blocks, n)
     A, B, C = sysd.A, sysd.B, sysd.C
     _, (scale, _perm) = sla.matrix_balance(A, permute=False, separate=True)
     Ab = A / scale[:, None] * scale[None, :]
@@ -454,58 +653,62 @@ def to_modal(sysd: StateSpace, max_cond: float = 1e8, form: str = "auto",
     norms = np.linalg.norm(vl, axis=0) * np.linalg.norm(vr, axis=0)
     eig_cond = float(np.max(norms / np.maximum(dots, np.finfo(float).tiny)))
 
-    # Real basis: one column per real eigenvalue, [Re v, Im v] per pair (Im lambda > 0).
-    tol = 1e3 * np.finfo(float).eps * max(1.0, float(np.max(np.abs(lam))))
-    is_real = np.abs(lam.imag) <= tol
-    upper = np.flatnonzero(lam.imag > tol)
-    upper = upper[np.argsort(np.abs(np.angle(lam[upper])))]  # pairs sorted by frequency
-    reals = np.flatnonzero(is_real)
-    reals = reals[np.argsort(-lam[reals].real)]
-    n_pairs, n_real = upper.size, reals.size
-    if 2 * n_pairs + n_real != n:
-        return _fail(form, dense, "eigenvalues do not split into real values and conjugate pairs")
-    V = np.empty((n, n))
-    for k, j in enumerate(upper):
-        v = vr[:, j]
-        v = v / np.linalg.norm(v)
-        # Rotate the complex vector so Re v and Im v are orthogonal: the best-conditioned real
-        # basis of the 2-D invariant subspace.
-        a2 = np.dot(v, v)
-        v = v * np.exp(-0.5j * np.angle(a2))
-        V[:, 2 * k], V[:, 2 * k + 1] = v.real, v.imag
-    for k, j in enumerate(reals):
-        v = vr[:, j].real
-        V[:, 2 * n_pairs + k] = v / np.linalg.norm(v)
-    # Columns are not rescaled one by one: a and b of a pair must share one scale for the
-    # block to stay [[sigma, omega], [-omega, sigma]].
-    cond = float(np.linalg.cond(V)) if np.all(np.isfinite(V)) else np.inf
-    if not (cond <= max_cond):
-        return _fail(form, dense, f"eigenvector basis condition {cond:.3g} > max_cond "
-                     f"{max_cond:.3g} (near-defective eigenvalues)", cond, eig_cond)
+    def checked(V, lam_pairs, lam_reals, state_block=None, zero=None):
+        """ModalForm for the basis V, or a failure reason."""
+        n_pairs, n_real = lam_pairs.size, lam_reals.size
+        # Columns are not rescaled one by one: a and b of a pair must share one scale for the
+        # block to stay [[sigma, omega], [-omega, sigma]].
+        cond = float(np.linalg.cond(V)) if np.all(np.isfinite(V)) else np.inf
+        if not (cond <= max_cond):
+            return (f"eigenvector basis condition {cond:.3g} > max_cond {max_cond:.3g} "
+                    "(near-defective eigenvalues)", cond)
+        Am = _block_matrix(lam_pairs, lam_reals)
+        Vinv = np.linalg.inv(V)
+        Bm = Vinv @ (B / scale[:, None])
+        Cm = (C * scale[None, :]) @ V
+        if zero is not None:
+            Cm[zero] = 0.0
+        resid = np.linalg.norm(Ab @ V - V @ Am) / (np.linalg.norm(Ab) * np.linalg.norm(V))
+        if not resid <= markov_tol:
+            return f"similarity residual {resid:.3g} > {markov_tol:.3g}", cond
+        merr = _markov_error(A, B, C, Am, Bm, Cm, markov_steps)
+        if not merr <= markov_tol:
+            return (f"impulse response differs by {merr:.3g} (relative) over {markov_steps} "
+                    "samples", cond)
+        s = sysd._replace(A=Am, B=Bm, C=Cm, state_names=())
+        T = scale[:, None] * V
+        return ModalForm(s, "modal", T, cond, eig_cond, n_pairs, n_real,
+                         f"eigenvector basis condition {cond:.3g} <= {max_cond:.3g}", state_block)
 
-    Am = np.zeros((n, n))
-    for k, j in enumerate(upper):
-        i = 2 * k
-        Am[i, i] = Am[i + 1, i + 1] = lam[j].real
-        Am[i, i + 1] = lam[j].imag
-        Am[i + 1, i] = -lam[j].imag
-    for k, j in enumerate(reals):
-        Am[2 * n_pairs + k, 2 * n_pairs + k] = lam[j].real
-    Vinv = np.linalg.inv(V)
-    Bm = Vinv @ (B / scale[:, None])
-    Cm = (C * scale[None, :]) @ V
-    resid = np.linalg.norm(Ab @ V - V @ Am) / (np.linalg.norm(Ab) * np.linalg.norm(V))
-    if not resid <= markov_tol:
-        return _fail(form, dense, f"similarity residual {resid:.3g} > {markov_tol:.3g}",
-                     cond, eig_cond)
-    merr = _markov_error(A, B, C, Am, Bm, Cm, markov_steps)
-    if not merr <= markov_tol:
-        return _fail(form, dense, f"impulse response differs by {merr:.3g} (relative) over "
-                     f"{markov_steps} samples", cond, eig_cond)
-    s = sysd._replace(A=Am, B=Bm, C=Cm, state_names=())
-    T = scale[:, None] * V
-    return ModalForm(s, "modal", T, cond, eig_cond, n_pairs, n_real,
-                     f"eigenvector basis condition {cond:.3g} <= {max_cond:.3g}")
+    notes = ""
+    if blocks is not None:
+        zero_tol = 1e-14 * float(np.linalg.norm(Ab))
+        got = _cascade_basis(Ab, blocks, zero_tol)
+        if isinstance(got, str):
+            notes = f"cascade realization failed ({got}); "
+        else:
+            V, lam_pairs, lam_reals, state_block, feeds = got
+            # Output o depends on block k iff C reads a block at or downstream of k.
+            reach = _downstream(feeds)
+            reads = np.array([[np.any(C[o, bk] != 0.0) for bk in blocks]
+                              for o in range(C.shape[0])], dtype=bool).reshape(-1, len(blocks))
+            depends = (reads.astype(int) @ reach.T.astype(int)) > 0   # (n_outputs, n_blocks)
+            zero = ~depends[:, state_block]
+            mf = checked(V, lam_pairs, lam_reals, state_block, zero)
+            if isinstance(mf, ModalForm):
+                return dataclasses_replace(mf, reason=mf.reason + f"; cascade of {len(blocks)} "
+                                           "subsystems")
+            notes = f"cascade realization failed ({mf[0]}); "
+
+    basis = _real_basis(Ab)
+    if basis is None:
+        return _fail(form, dense, notes + "eigenvalues do not split into real values and "
+                     "conjugate pairs", eig_cond=eig_cond)
+    lam_pairs, lam_reals, V = basis
+    mf = checked(V, lam_pairs, lam_reals)
+    if isinstance(mf, ModalForm):
+        return dataclasses_replace(mf, reason=notes + mf.reason) if notes else mf
+    return _fail(form, dense, notes + mf[0], mf[1], eig_cond)
 
 
 def _fail(form, dense, reason, cond=np.inf, eig_cond=np.inf):
