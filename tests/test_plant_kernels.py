@@ -209,7 +209,7 @@ def plan_matrix(plan, coef, shape):
     """The coefficient matrix a plan applies, and how often it touches each entry."""
     c = np.zeros(shape)
     hits = np.zeros(shape, dtype=int)
-    for (nr, r0, r1, r2, w, _start, *cols), cf in zip(plan, coef):
+    for (nr, r0, r1, r2, w, *cols), cf in zip(plan, coef):
         for i, r in enumerate((r0, r1, r2)[:nr]):
             for j in range(w):
                 c[r, cols[j]] += cf[i, j]
@@ -228,14 +228,13 @@ def test_output_plan_covers_each_nonzero_once(seed):
     rebuilt, hits = plan_matrix(plan, coef, c.shape)
     assert np.array_equal(rebuilt, c)
     assert np.array_equal(hits, (c != 0).astype(int))
-    for nr, *_, w, start in plan[:, :6]:
+    for nr, *_, w in plan[:, :5]:
         assert (nr, w) in K.TILE_SHAPES
-    # Every output row is started (assigned) by exactly one tile, before any tile adds to it.
+    # A tile's rows are distinct, and every output row belongs to some tile.
     seen = set()
-    for nr, r0, r1, r2, _w, start, *_ in plan:
+    for nr, r0, r1, r2, *_ in plan:
         rows = (r0, r1, r2)[:nr]
         assert len(set(rows)) == nr
-        assert all((r in seen) != bool(start) for r in rows)
         seen |= set(rows)
     assert seen == set(range(n_out))
 

@@ -48,9 +48,9 @@ FORM_MODAL = 0
 FORM_DENSE = 1
 
 #: Output tile shapes (rows, states) with a kernel each (see :func:`output_plan`); a plan row is
-#: ``(n_rows, row0, row1, row2, width, start, state0 .. state7)``.
+#: ``(n_rows, row0, row1, row2, width, state0 .. state7)``.
 TILE_SHAPES = ((3, 8), (3, 4), (2, 8), (2, 4), (1, 8), (1, 4), (1, 1))
-PLAN_COLUMNS = 14
+PLAN_COLUMNS = 13
 
 
 @kernel
@@ -180,38 +180,13 @@ def lti_steps_dense(a, b, X, src, dst, steps, ut, uoff, nc):
 
 
 @kernel
-def _tile3x8_set(plan, coef, k, X, ys, L):
-    """Output rows ``plan[k, 1:4]`` = ``coef[k, :3, :8] @ X[plan[k, 6:14], :L]``."""
-    y0 = ys[plan[k, 1], :L]
-    y1 = ys[plan[k, 2], :L]
-    y2 = ys[plan[k, 3], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
-    s4, s5, s6, s7 = plan[k, 10], plan[k, 11], plan[k, 12], plan[k, 13]
-    c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
-    c04, c05, c06, c07 = coef[k, 0, 4], coef[k, 0, 5], coef[k, 0, 6], coef[k, 0, 7]
-    c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
-    c14, c15, c16, c17 = coef[k, 1, 4], coef[k, 1, 5], coef[k, 1, 6], coef[k, 1, 7]
-    c20, c21, c22, c23 = coef[k, 2, 0], coef[k, 2, 1], coef[k, 2, 2], coef[k, 2, 3]
-    c24, c25, c26, c27 = coef[k, 2, 4], coef[k, 2, 5], coef[k, 2, 6], coef[k, 2, 7]
-    for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
-        v4 = X[s4, i]; v5 = X[s5, i]; v6 = X[s6, i]; v7 = X[s7, i]
-        y0[i] = ((c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3)
-                 + (c04 * v4 + c05 * v5 + c06 * v6 + c07 * v7))
-        y1[i] = ((c10 * v0 + c11 * v1 + c12 * v2 + c13 * v3)
-                 + (c14 * v4 + c15 * v5 + c16 * v6 + c17 * v7))
-        y2[i] = ((c20 * v0 + c21 * v1 + c22 * v2 + c23 * v3)
-                 + (c24 * v4 + c25 * v5 + c26 * v6 + c27 * v7))
-
-
-@kernel
 def _tile3x8_add(plan, coef, k, X, ys, L):
-    """Output rows ``plan[k, 1:4]`` += ``coef[k, :3, :8] @ X[plan[k, 6:14], :L]``."""
+    """Output rows ``plan[k, 1:4]`` += ``coef[k, :3, :8] @ X[plan[k, 5:13], :L]``."""
     y0 = ys[plan[k, 1], :L]
     y1 = ys[plan[k, 2], :L]
     y2 = ys[plan[k, 3], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
-    s4, s5, s6, s7 = plan[k, 10], plan[k, 11], plan[k, 12], plan[k, 13]
+    s0, s1, s2, s3 = plan[k, 5], plan[k, 6], plan[k, 7], plan[k, 8]
+    s4, s5, s6, s7 = plan[k, 9], plan[k, 10], plan[k, 11], plan[k, 12]
     c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
     c04, c05, c06, c07 = coef[k, 0, 4], coef[k, 0, 5], coef[k, 0, 6], coef[k, 0, 7]
     c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
@@ -230,29 +205,12 @@ def _tile3x8_add(plan, coef, k, X, ys, L):
 
 
 @kernel
-def _tile3x4_set(plan, coef, k, X, ys, L):
-    """Output rows ``plan[k, 1:4]`` = ``coef[k, :3, :4] @ X[plan[k, 6:10], :L]``."""
-    y0 = ys[plan[k, 1], :L]
-    y1 = ys[plan[k, 2], :L]
-    y2 = ys[plan[k, 3], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
-    c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
-    c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
-    c20, c21, c22, c23 = coef[k, 2, 0], coef[k, 2, 1], coef[k, 2, 2], coef[k, 2, 3]
-    for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
-        y0[i] = c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3
-        y1[i] = c10 * v0 + c11 * v1 + c12 * v2 + c13 * v3
-        y2[i] = c20 * v0 + c21 * v1 + c22 * v2 + c23 * v3
-
-
-@kernel
 def _tile3x4_add(plan, coef, k, X, ys, L):
-    """Output rows ``plan[k, 1:4]`` += ``coef[k, :3, :4] @ X[plan[k, 6:10], :L]``."""
+    """Output rows ``plan[k, 1:4]`` += ``coef[k, :3, :4] @ X[plan[k, 5:9], :L]``."""
     y0 = ys[plan[k, 1], :L]
     y1 = ys[plan[k, 2], :L]
     y2 = ys[plan[k, 3], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
+    s0, s1, s2, s3 = plan[k, 5], plan[k, 6], plan[k, 7], plan[k, 8]
     c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
     c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
     c20, c21, c22, c23 = coef[k, 2, 0], coef[k, 2, 1], coef[k, 2, 2], coef[k, 2, 3]
@@ -264,32 +222,12 @@ def _tile3x4_add(plan, coef, k, X, ys, L):
 
 
 @kernel
-def _tile2x8_set(plan, coef, k, X, ys, L):
-    """Output rows ``plan[k, 1:3]`` = ``coef[k, :2, :8] @ X[plan[k, 6:14], :L]``."""
-    y0 = ys[plan[k, 1], :L]
-    y1 = ys[plan[k, 2], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
-    s4, s5, s6, s7 = plan[k, 10], plan[k, 11], plan[k, 12], plan[k, 13]
-    c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
-    c04, c05, c06, c07 = coef[k, 0, 4], coef[k, 0, 5], coef[k, 0, 6], coef[k, 0, 7]
-    c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
-    c14, c15, c16, c17 = coef[k, 1, 4], coef[k, 1, 5], coef[k, 1, 6], coef[k, 1, 7]
-    for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
-        v4 = X[s4, i]; v5 = X[s5, i]; v6 = X[s6, i]; v7 = X[s7, i]
-        y0[i] = ((c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3)
-                 + (c04 * v4 + c05 * v5 + c06 * v6 + c07 * v7))
-        y1[i] = ((c10 * v0 + c11 * v1 + c12 * v2 + c13 * v3)
-                 + (c14 * v4 + c15 * v5 + c16 * v6 + c17 * v7))
-
-
-@kernel
 def _tile2x8_add(plan, coef, k, X, ys, L):
-    """Output rows ``plan[k, 1:3]`` += ``coef[k, :2, :8] @ X[plan[k, 6:14], :L]``."""
+    """Output rows ``plan[k, 1:3]`` += ``coef[k, :2, :8] @ X[plan[k, 5:13], :L]``."""
     y0 = ys[plan[k, 1], :L]
     y1 = ys[plan[k, 2], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
-    s4, s5, s6, s7 = plan[k, 10], plan[k, 11], plan[k, 12], plan[k, 13]
+    s0, s1, s2, s3 = plan[k, 5], plan[k, 6], plan[k, 7], plan[k, 8]
+    s4, s5, s6, s7 = plan[k, 9], plan[k, 10], plan[k, 11], plan[k, 12]
     c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
     c04, c05, c06, c07 = coef[k, 0, 4], coef[k, 0, 5], coef[k, 0, 6], coef[k, 0, 7]
     c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
@@ -304,25 +242,11 @@ def _tile2x8_add(plan, coef, k, X, ys, L):
 
 
 @kernel
-def _tile2x4_set(plan, coef, k, X, ys, L):
-    """Output rows ``plan[k, 1:3]`` = ``coef[k, :2, :4] @ X[plan[k, 6:10], :L]``."""
-    y0 = ys[plan[k, 1], :L]
-    y1 = ys[plan[k, 2], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
-    c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
-    c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
-    for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
-        y0[i] = c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3
-        y1[i] = c10 * v0 + c11 * v1 + c12 * v2 + c13 * v3
-
-
-@kernel
 def _tile2x4_add(plan, coef, k, X, ys, L):
-    """Output rows ``plan[k, 1:3]`` += ``coef[k, :2, :4] @ X[plan[k, 6:10], :L]``."""
+    """Output rows ``plan[k, 1:3]`` += ``coef[k, :2, :4] @ X[plan[k, 5:9], :L]``."""
     y0 = ys[plan[k, 1], :L]
     y1 = ys[plan[k, 2], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
+    s0, s1, s2, s3 = plan[k, 5], plan[k, 6], plan[k, 7], plan[k, 8]
     c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
     c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
     for i in range(L):
@@ -332,26 +256,11 @@ def _tile2x4_add(plan, coef, k, X, ys, L):
 
 
 @kernel
-def _tile1x8_set(plan, coef, k, X, ys, L):
-    """Output row = ``coef[k, :1, :8] @ X[plan[k, 6:14], :L]``."""
-    y0 = ys[plan[k, 1], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
-    s4, s5, s6, s7 = plan[k, 10], plan[k, 11], plan[k, 12], plan[k, 13]
-    c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
-    c04, c05, c06, c07 = coef[k, 0, 4], coef[k, 0, 5], coef[k, 0, 6], coef[k, 0, 7]
-    for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
-        v4 = X[s4, i]; v5 = X[s5, i]; v6 = X[s6, i]; v7 = X[s7, i]
-        y0[i] = ((c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3)
-                 + (c04 * v4 + c05 * v5 + c06 * v6 + c07 * v7))
-
-
-@kernel
 def _tile1x8_add(plan, coef, k, X, ys, L):
-    """Output row += ``coef[k, :1, :8] @ X[plan[k, 6:14], :L]``."""
+    """Output row += ``coef[k, :1, :8] @ X[plan[k, 5:13], :L]``."""
     y0 = ys[plan[k, 1], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
-    s4, s5, s6, s7 = plan[k, 10], plan[k, 11], plan[k, 12], plan[k, 13]
+    s0, s1, s2, s3 = plan[k, 5], plan[k, 6], plan[k, 7], plan[k, 8]
+    s4, s5, s6, s7 = plan[k, 9], plan[k, 10], plan[k, 11], plan[k, 12]
     c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
     c04, c05, c06, c07 = coef[k, 0, 4], coef[k, 0, 5], coef[k, 0, 6], coef[k, 0, 7]
     for i in range(L):
@@ -362,21 +271,10 @@ def _tile1x8_add(plan, coef, k, X, ys, L):
 
 
 @kernel
-def _tile1x4_set(plan, coef, k, X, ys, L):
-    """Output row = ``coef[k, :1, :4] @ X[plan[k, 6:10], :L]``."""
-    y0 = ys[plan[k, 1], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
-    c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
-    for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
-        y0[i] = c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3
-
-
-@kernel
 def _tile1x4_add(plan, coef, k, X, ys, L):
-    """Output row += ``coef[k, :1, :4] @ X[plan[k, 6:10], :L]``."""
+    """Output row += ``coef[k, :1, :4] @ X[plan[k, 5:9], :L]``."""
     y0 = ys[plan[k, 1], :L]
-    s0, s1, s2, s3 = plan[k, 6], plan[k, 7], plan[k, 8], plan[k, 9]
+    s0, s1, s2, s3 = plan[k, 5], plan[k, 6], plan[k, 7], plan[k, 8]
     c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
     for i in range(L):
         v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
@@ -384,21 +282,10 @@ def _tile1x4_add(plan, coef, k, X, ys, L):
 
 
 @kernel
-def _tile1x1_set(plan, coef, k, X, ys, L):
-    """Output row = ``coef[k, :1, :1] @ X[plan[k, 6:7], :L]``."""
-    y0 = ys[plan[k, 1], :L]
-    s0 = plan[k, 6]
-    c00 = coef[k, 0, 0]
-    for i in range(L):
-        v0 = X[s0, i]
-        y0[i] = c00 * v0
-
-
-@kernel
 def _tile1x1_add(plan, coef, k, X, ys, L):
-    """Output row += ``coef[k, :1, :1] @ X[plan[k, 6:7], :L]``."""
+    """Output row += ``coef[k, :1, :1] @ X[plan[k, 5:6], :L]``."""
     y0 = ys[plan[k, 1], :L]
-    s0 = plan[k, 6]
+    s0 = plan[k, 5]
     c00 = coef[k, 0, 0]
     for i in range(L):
         v0 = X[s0, i]
@@ -406,64 +293,45 @@ def _tile1x1_add(plan, coef, k, X, ys, L):
 
 
 @kernel
-def _add_feedthrough(ys, o, do, ut, uoff, L):
-    """``ys[o, :L] += do * ut[uoff:uoff + L]``."""
-    y = ys[o, :L]
+def _start_rows(ys, d, ut, uoff, L):
+    """``ys[o, :L] = d[o] * ut[uoff:uoff + L]`` for every output (the feedthrough, often 0)."""
     uu = ut[uoff:uoff + L]
-    for i in range(L):
-        y[i] += do * uu[i]
+    for o in range(ys.shape[0]):
+        y = ys[o, :L]
+        do = d[o]
+        for i in range(L):
+            y[i] = do * uu[i]
 
 
 @kernel
 def lti_outputs(plan, coef, d, X, ut, uoff, ys, L):
     """``ys[:, :L] = C X[:, :L] + d ut[uoff:uoff + L]``, tile by tile (see :func:`output_plan`).
 
-    Tile ``k`` updates output rows ``plan[k, 1:1 + plan[k, 0]]`` from the states
-    ``plan[k, 6:6 + plan[k, 4]]`` with coefficients ``coef[k]``; a tile with ``plan[k, 5] == 1``
-    starts its rows (assigns), the others add. Then ``d[o] u`` is added to the rows with a
-    nonzero ``d[o]``.
+    Every row starts at its feedthrough ``d[o] u``; tile ``k`` then adds to output rows
+    ``plan[k, 1:1 + plan[k, 0]]`` from the states ``plan[k, 5:5 + plan[k, 4]]`` with
+    coefficients ``coef[k]``. (Assigning in each row's first tile instead saves ~0.3 ns per
+    channel-sample but doubles the tile kernels and their compile time.)
     """
+    _start_rows(ys, d, ut, uoff, L)
     for k in range(plan.shape[0]):
         nr = plan[k, 0]
         w = plan[k, 4]
-        start = plan[k, 5] != 0
         if nr == 3:
             if w == 8:
-                if start:
-                    _tile3x8_set(plan, coef, k, X, ys, L)
-                else:
-                    _tile3x8_add(plan, coef, k, X, ys, L)
-            elif start:
-                _tile3x4_set(plan, coef, k, X, ys, L)
+                _tile3x8_add(plan, coef, k, X, ys, L)
             else:
                 _tile3x4_add(plan, coef, k, X, ys, L)
         elif nr == 2:
             if w == 8:
-                if start:
-                    _tile2x8_set(plan, coef, k, X, ys, L)
-                else:
-                    _tile2x8_add(plan, coef, k, X, ys, L)
-            elif start:
-                _tile2x4_set(plan, coef, k, X, ys, L)
+                _tile2x8_add(plan, coef, k, X, ys, L)
             else:
                 _tile2x4_add(plan, coef, k, X, ys, L)
         elif w == 8:
-            if start:
-                _tile1x8_set(plan, coef, k, X, ys, L)
-            else:
-                _tile1x8_add(plan, coef, k, X, ys, L)
+            _tile1x8_add(plan, coef, k, X, ys, L)
         elif w == 4:
-            if start:
-                _tile1x4_set(plan, coef, k, X, ys, L)
-            else:
-                _tile1x4_add(plan, coef, k, X, ys, L)
-        elif start:
-            _tile1x1_set(plan, coef, k, X, ys, L)
+            _tile1x4_add(plan, coef, k, X, ys, L)
         else:
             _tile1x1_add(plan, coef, k, X, ys, L)
-    for o in range(ys.shape[0]):
-        if d[o] != 0.0:
-            _add_feedthrough(ys, o, d[o], ut, uoff, L)
 
 
 @kernel
@@ -766,7 +634,7 @@ def output_plan(c, slack=0.25):
     multiply-adds are zeros); each group runs over the union of its states in tiles of 8, then
     4 (a remainder of 5-7 states is padded to 8, of 2-3 to 4, of 1 to 4 unless the group has a
     single row), padding with a state of the tile and a zero coefficient. States an output does
-    not read at all (exact zeros) are skipped. The first tile of a group assigns its rows.
+    not read at all (exact zeros) are skipped.
 
     Parameters
     ----------
@@ -774,8 +642,8 @@ def output_plan(c, slack=0.25):
 
     Returns
     -------
-    plan : ndarray of int64, shape (n_tiles, 14)
-        ``(n_rows, row0, row1, row2, width, start, state0 .. state7)``; unused rows repeat
+    plan : ndarray of int64, shape (n_tiles, 13)
+        ``(n_rows, row0, row1, row2, width, state0 .. state7)``; unused rows repeat
         ``row0``, unused states repeat ``state0``.
     coef : ndarray, shape (n_tiles, 3, 8)
         Coefficients, zero where unused.
@@ -808,7 +676,7 @@ def output_plan(c, slack=0.25):
         for t, tc in enumerate(tiles):
             w = 8 if len(tc) > 4 else 4 if (len(tc) > 1 or nr > 1) else 1
             rows = g + [g[0]] * (3 - nr)
-            plan.append([nr, *rows, w, 1 if t == 0 else 0, *(tc + [tc[0]] * (8 - len(tc)))])
+            plan.append([nr, *rows, w, *(tc + [tc[0]] * (8 - len(tc)))])
             cf = np.zeros((3, 8))
             for r, o in enumerate(g):
                 cf[r, :len(tc)] = c[o, tc]
