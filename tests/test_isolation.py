@@ -112,4 +112,3 @@ def test_realtime_pacing_takes_wall_time(tmp_path):
     wall = time.perf_counter() - t0
     assert wall >= 0.3
     assert r.summary["realtime_factor"] == pytest.approx(1.0, abs=0.1)
-    assert r.summary["deadline_misses"] >= 0
