@@ -91,8 +91,8 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         out.mkdir(parents=True, exist_ok=True)
         writer = TraceWriter(out / "trace", rig.trace_signals(), fs, block, rig.channel_names,
                              meta={"scene": scene.to_dict(), "source": scene.source,
-                                   "overrides": list(scene.overrides)})
-    times = np.zeros(n_blocks + 1)
+                                   "overrides": list(scene.overrides), "sensed_rows": rig.sensed_names})
+    times = np.zeros(n_blocks)
     faults: list[str] = []
     status_seen = 0
     misses = 0

@@ -31,13 +31,7 @@ class Tone:
     threshold_m: float        # m, NaN when no receptor responds at freq
     target_m: float           # m
     start: float              # s
-    bank_index: tuple         # oscillator tones that make it
-
-    @property
-    def freqs(self) -> tuple:
-        if self.beat > 0:
-            return (self.freq - self.beat / 2, self.freq + self.beat / 2)
-        return (self.freq,)
+    freqs: tuple              # Hz, the oscillator tones that make it (two for a beat pair)
 
 
 def check_available(scene) -> None:
@@ -126,6 +120,7 @@ class Rig:
         self.device = None
         self.truth = None
         self.sensed = np.zeros((0, self.block))
+        self.sensed_names: list[str] = []  # row names of ``sensed``, for trace readers
         self._group_caps = {}
         if scene.io.backend == "sim":
             self._build_sim(scene)
@@ -155,7 +150,6 @@ class Rig:
 
         mats = _materials(scene)
         groups, ch0, row0 = [], 0, 0
-        self.sensed_names = []
         for gi, g in enumerate(scene.actuator):
             n = g.grid[0] * g.grid[1]
             fe = beam_model(g, mats)
@@ -176,36 +170,37 @@ class Rig:
         self.truth = self.device.truth
 
     def _build_tones(self, scene):
-        tones, chans, freqs, amps = [], [], [], []
+        tones, chans, freqs = [], [], []
         offsets = {}
         k = 0
         for g in scene.actuator:
             offsets[g.name] = k
             k += g.grid[0] * g.grid[1]
         self._schedule: dict[int, list] = {}
-        for t in scene.stimulus.tones if scene.stimulus.kind == "tones" else ():
+        scene_tones = scene.stimulus.tones if scene.stimulus.kind == "tones" else ()
+        if scene_tones:
+            from .dsp import OscillatorBank, beat_tones
+        for t in scene_tones:
             ch = offsets[t.actuator] + t.channel
             receptor = perception.auto_receptor(t.freq) if t.receptor == "auto" else t.receptor
             thr = perception.threshold_m(t.freq, receptor) if receptor else math.nan
             tgt = perception.target_m(t.freq, receptor, scene.control.margin_db) if receptor else math.nan
-            fr = (t.freq - t.beat / 2, t.freq + t.beat / 2) if t.beat > 0 else (t.freq,)
-            amp = t.voltage / len(fr)  # a beat pair's envelope peaks at the pair amplitude
-            idx = tuple(range(len(freqs), len(freqs) + len(fr)))
-            tones.append(Tone(ch, t.freq, t.beat, t.voltage, receptor, thr, tgt, t.start, idx))
-            chans += [ch] * len(fr)
-            freqs += list(fr)
-            amps += [amp] * len(fr)
+            if t.beat > 0:  # a pair of half amplitude each: the envelope peaks at the pair voltage
+                fr, am = (tuple(float(x) for x in a) for a in beat_tones(t.freq, t.beat, t.voltage))
+            else:
+                fr, am = (t.freq,), (t.voltage,)
+            tones.append(Tone(ch, t.freq, t.beat, t.voltage, receptor, thr, tgt, t.start, fr))
             # Every tone switches on ramped over one block at the block holding its start time.
             kb = int(math.floor(t.start * self.fs / self.block))
-            self._schedule.setdefault(kb, []).extend((i, amp) for i in idx)
+            self._schedule.setdefault(kb, []).extend(zip(range(len(freqs), len(freqs) + len(fr)), am))
+            chans += [ch] * len(fr)
+            freqs += fr
         self.tones = tones
         self.targets_um = np.full(self.n_channels, np.nan)
         for tone in tones:
             self.targets_um[tone.channel] = tone.target_m * 1e6
         self.bank = None
         if freqs:
-            from .dsp import OscillatorBank
-
             self.bank = OscillatorBank(self.n_channels, np.array(chans), self.fs, np.array(freqs),
                                        np.zeros(len(freqs)), ramp=self.block)
 

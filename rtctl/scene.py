@@ -189,7 +189,7 @@ def apply_override(data: dict, item: str, origin: str = "--set") -> None:
     for i, part in enumerate(parts[:-1]):
         here = ".".join(parts[: i + 1])
         if isinstance(node, list):
-            node = _list_item(node, part, here, item)
+            node = node[_list_index(node, part, here, item)]
         elif isinstance(node, dict):
             if part not in node:
                 node[part] = {}
@@ -216,10 +216,6 @@ def _list_index(items: list, part: str, here: str, item: str) -> int:
     if part in names:
         return names.index(part)
     raise SceneError(f"--set {item!r}: no item named {part!r} at {here} (have {names})")
-
-
-def _list_item(items: list, part: str, here: str, item: str) -> Any:
-    return items[_list_index(items, part, here, item)]
 
 
 # ----------------------------------------------------------------------------- validation

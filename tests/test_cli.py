@@ -81,6 +81,8 @@ def test_run_json_summary_trace_and_plot(capsys, tmp_path):
     r = TraceReader(tmp_path / "trace")
     assert r.n_blocks == math.ceil(0.5 * 48000 / 32) + 1  # run blocks + the closing fade block
     assert np.all(r.signal("drive")[:, -1] == 0.0)  # the run ends at 0 V
+    rows = r.layout["meta"]["sensed_rows"]
+    assert len(rows) == r.signal("sensed").shape[0] and rows[:3] == ["lateral.0.seg0", "lateral.0.seg1", "lateral.1.seg0"]
 
 
 def test_run_amplitude_matches_the_continuous_model(capsys, tmp_path):

@@ -276,26 +276,10 @@ def _osc_anchor(st, i):
 
 
 @kernel
-def _osc_steady_add(st, chan, out, j0, m):
-    zr = st[ZR]
-    zi = st[ZI]
-    wr = st[WR]
-    wi = st[WI]
-    amp = st[AMP]
-    y = st[Y]
-    nt = zr.shape[0]
-    for j in range(j0, j0 + m):
-        for i in range(nt):
-            y[i] = amp[i] * zr[i]
-            r = zr[i] * wr[i] - zi[i] * wi[i]
-            zi[i] = zr[i] * wi[i] + zi[i] * wr[i]
-            zr[i] = r
-        for i in range(nt):
-            out[chan[i], j] += y[i]
-
-
-@kernel
 def _osc_amp_ramp_add(st, chan, out, j0, m):
+    """Rotate every tone's phasor and add it into its row; amplitudes step by ``DAMP``, which is
+    0 outside an amplitude ramp (so this is also the steady loop: a separate one without the add
+    measured only ~0.2 ns per tone-sample faster)."""
     zr = st[ZR]
     zi = st[ZI]
     wr = st[WR]
@@ -366,10 +350,8 @@ def osc_bank_process(state, pending, chan, out):
         m, mode = _osc_chunk(state, n - t)
         if mode == 2:
             _osc_ramp_add(state, chan, out, t, m)
-        elif mode == 1:
-            _osc_amp_ramp_add(state, chan, out, t, m)
         else:
-            _osc_steady_add(state, chan, out, t, m)
+            _osc_amp_ramp_add(state, chan, out, t, m)
         _osc_advance(state, m)
         t += m
 
