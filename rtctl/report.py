@@ -65,10 +65,11 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
     fs, block = rig.fs, rig.block
     n = n_run_blocks * block
     t = np.arange(n) / fs
-    tip = reader.signal("tip_um")[:, :n] if "tip_um" in reader.units else None
-    drive = reader.signal("drive")[:, :n]
+    has_tip = "tip_um" in reader.units
     rows = []
     for ch in range(rig.n_channels):
+        drive = reader.signal("drive", ch)[:n]
+        tip = reader.signal("tip_um", ch)[:n] if has_tip else None
         tones = [tn for tn in rig.tones if tn.channel == ch]
         freqs = [f for tn in tones for f in tn.freqs]
         main = tones[0] if tones else None
@@ -83,20 +84,20 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             "estimated_um": None,
             "error_pct": None,
             "settle_ms": None,
-            "v_peak": float(np.max(np.abs(drive[ch]))) if n else 0.0,
+            "v_peak": float(np.max(np.abs(drive))) if n else 0.0,
             "limited": bool(rig.limiter.counts[:, ch].sum() > 0),
         }
         if tip is not None and freqs:
             win = analysis_window(n / fs, freqs)
             m = t >= t[-1] - win
-            amp = float(fit_amplitudes(tip[ch, m], t[m], freqs).sum()) if np.all(np.isfinite(tip[ch])) else math.nan
+            amp = float(fit_amplitudes(tip[m], t[m], freqs).sum()) if np.all(np.isfinite(tip)) else math.nan
             if not math.isfinite(amp):  # a plant fault left NaN in the truth: nothing to report
                 rows.append(row)
                 continue
             row["true_um"] = amp
             if main.target_m and math.isfinite(main.target_m):
                 row["error_pct"] = 100.0 * (amp * 1e-6 - main.target_m) / main.target_m
-            st = settle_time(tip[ch], t, freqs, min(tn.start for tn in tones), amp)
+            st = settle_time(tip, t, freqs, min(tn.start for tn in tones), amp)
             row["settle_ms"] = None if st is None else 1e3 * st
         rows.append(row)
     return rows
@@ -129,6 +130,19 @@ def print_table(summary: dict) -> None:
               f"{' (limited)' if r['limited'] else ''}")
 
 
+def _envelope(t: np.ndarray, x: np.ndarray, points: int = 20000):
+    """At most ``points`` points that keep each bucket's minimum and maximum, so a long run plots
+    quickly and still shows its true envelope (plain striding would alias the oscillation)."""
+    if x.size <= points:
+        return t, x
+    k = x.size // (points // 2)
+    m = (x.size // k) * k
+    xb = x[:m].reshape(-1, k)
+    tt = np.repeat(t[:m].reshape(-1, k)[:, 0], 2)
+    xx = np.column_stack([xb.min(axis=1), xb.max(axis=1)]).reshape(-1)
+    return tt, xx
+
+
 def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> None:
     """plot.png: drive voltage and true tip displacement per channel against the threshold and
     target lines, and a bar chart of every channel's amplitude against its threshold."""
@@ -141,18 +155,17 @@ def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> N
     shown = rows[:max_rows]
     n = n_run_blocks * reader.block
     t = reader.time()[:n]
-    drive = reader.signal("drive")[:, :n]
-    tip = reader.signal("tip_um")[:, :n] if "tip_um" in reader.units else None
+    has_tip = "tip_um" in reader.units
     fig = plt.figure(figsize=(11, 2.0 * len(shown) + 3.2), layout="constrained")
     gs = fig.add_gridspec(len(shown) + 1, 2, height_ratios=[1] * len(shown) + [1.6])
     for i, r in enumerate(shown):
         ax = fig.add_subplot(gs[i, 0])
-        ax.plot(t, drive[i], lw=0.6, color="C0")
+        ax.plot(*_envelope(t, reader.signal("drive", i)[:n]), lw=0.6, color="C0")
         ax.set_ylabel("drive V")
         ax.set_title(f"{r['name']}  {_fmt(r['freq_hz'], '.0f')} Hz  {r['receptor'] or ''}", fontsize=9, loc="left")
-        if tip is not None:
+        if has_tip:
             bx = fig.add_subplot(gs[i, 1], sharex=ax)
-            bx.plot(t, tip[i], lw=0.6, color="C1", label="true tip")
+            bx.plot(*_envelope(t, reader.signal("tip_um", i)[:n]), lw=0.6, color="C1", label="true tip")
             for key, style, label in (("threshold_um", "--", "threshold"), ("target_um", ":", "target")):
                 if r[key] is not None:
                     bx.axhline(r[key], ls=style, color="k", lw=0.8, label=label)

@@ -126,10 +126,14 @@ class TraceReader:
         self.channels = self.layout["channels"]
         self.units = self.layout["units"]
 
-    def signal(self, name: str) -> np.ndarray:
+    def signal(self, name: str, row: int | None = None) -> np.ndarray:
         """A per-sample signal as float64 ``(rows, n_blocks * block)``, or a per-block one as
-        ``(rows, n_blocks)``."""
-        a = np.asarray(self.records[name], dtype=float)
+        ``(rows, n_blocks)``; with ``row``, only that row, 1-D (reads just that row from disk,
+        so long many-channel traces need not fit in memory twice)."""
+        rec = self.records[name]
+        if row is not None:
+            return np.asarray(rec[:, row], dtype=float).reshape(-1)
+        a = np.asarray(rec, dtype=float)
         if name in self.layout["per_block"]:
             return a.T.copy()
         return a.transpose(1, 0, 2).reshape(a.shape[1], -1)

@@ -40,3 +40,23 @@ def test_flushed_chunks_are_readable_without_close_and_partial_records_ignored(t
     assert r.n_blocks == 8
     np.testing.assert_array_equal(r.signal("drive")[0, -3:], [70, 71, 72])
     w._f.close()
+
+
+def test_single_row_read_equals_the_full_read(tmp_path):
+    write(tmp_path, 10)
+    r = TraceReader(tmp_path)
+    np.testing.assert_array_equal(r.signal("drive", 1), r.signal("drive")[1])
+
+
+def test_plot_envelope_keeps_every_bucket_extreme():
+    from rtctl.report import _envelope
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=1_000_003)
+    t = np.arange(x.size) / 48000.0
+    tt, xx = _envelope(t, x, points=2000)
+    assert xx.size <= 2000 and tt.size == xx.size
+    k = x.size // 1000
+    m = (x.size // k) * k
+    np.testing.assert_array_equal(xx[0::2], x[:m].reshape(-1, k).min(axis=1))
+    np.testing.assert_array_equal(xx[1::2], x[:m].reshape(-1, k).max(axis=1))
