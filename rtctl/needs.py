@@ -67,8 +67,11 @@ def needs(scene) -> Needs:
     need: dict[str, str] = {"safety.limiter": "every output passes the limiter"}
     st = scene.stimulus
     if st.kind == "tones":
-        if st.tones:
-            need["dsp.oscillator"] = f"stimulus.kind = 'tones' ({len(st.tones)} tone(s))"
+        sines = sum(t.shape == "sine" for t in st.tones)
+        if sines:
+            need["dsp.oscillator"] = f"stimulus.kind = 'tones' ({sines} sine tone(s))"
+        if len(st.tones) > sines:
+            need["dsp.pulse"] = f"stimulus.tones with shape square/pulse ({len(st.tones) - sines})"
     else:
         need["render"] = f"stimulus.kind = {st.kind!r}"
     if scene.control.mode == "closed":

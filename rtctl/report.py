@@ -4,7 +4,9 @@ The true tip amplitude of a channel is a least-squares fit of the simulated tip 
 its tone frequencies (plus an offset and a linear drift, which absorb the slow relaxation of the
 finger's 1.4 s Maxwell branch) over the analysis window: the last 0.5 s of the run, or two
 periods of the channel's lowest tone if that is longer, capped at the second half of the run. For
-a beat pair it is the sum of both tones' amplitudes, the peak of the envelope.
+a beat pair it is the sum of both tones' amplitudes, the peak of the envelope. For a square or
+pulse tone (binary pins, SMA taxels) the fundamental says little about the motion: the amplitude
+is half the peak-to-peak stroke over the whole periods of the analysis window.
 """
 
 from __future__ import annotations
@@ -90,15 +92,22 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
         if tip is not None and freqs:
             win = analysis_window(n / fs, freqs)
             m = t >= t[-1] - win
-            amp = float(fit_amplitudes(tip[m], t[m], freqs).sum()) if np.all(np.isfinite(tip)) else math.nan
+            if main.shape != "sine":  # stroke: half peak-to-peak over whole periods
+                per = max(1, int(round(win * main.freq)))
+                m = t >= t[-1] - per / main.freq
+                seg = tip[m]
+                amp = 0.5 * float(seg.max() - seg.min()) if np.all(np.isfinite(seg)) else math.nan
+            else:
+                amp = float(fit_amplitudes(tip[m], t[m], freqs).sum()) if np.all(np.isfinite(tip)) else math.nan
             if not math.isfinite(amp):  # a plant fault left NaN in the truth: nothing to report
                 rows.append(row)
                 continue
             row["true_um"] = amp
             if main.target_m and math.isfinite(main.target_m):
                 row["error_pct"] = 100.0 * (amp * 1e-6 - main.target_m) / main.target_m
-            st = settle_time(tip, t, freqs, min(tn.start for tn in tones), amp)
-            row["settle_ms"] = None if st is None else 1e3 * st
+            if main.shape == "sine":
+                st = settle_time(tip, t, freqs, min(tn.start for tn in tones), amp)
+                row["settle_ms"] = None if st is None else 1e3 * st
         rows.append(row)
     return rows
 

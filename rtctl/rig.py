@@ -32,6 +32,7 @@ class Tone:
     target_m: float           # m
     start: float              # s
     freqs: tuple              # Hz, the oscillator tones that make it (two for a beat pair)
+    shape: str = "sine"       # sine (oscillator bank) | square | pulse (pulse trains)
 
 
 def check_available(scene) -> None:
@@ -45,7 +46,7 @@ def check_available(scene) -> None:
 def _materials(scene):
     from .plant.materials import BUILTIN, material
 
-    names = {layer.material for a in scene.actuator for layer in a.beam.layers}
+    names = {layer.material for a in scene.actuator if a.type == "bimorph" for layer in a.beam.layers}
     out = {}
     for name in names:
         table = scene.materials.get(name)
@@ -67,13 +68,31 @@ def beam_model(group, materials):
     return build_beam(spec, SupportSpec(sup.type, sup.k, sup.k_rot))
 
 
+def finger_params(scene, direction: str):
+    """The finger's Maxwell parameter table for ``direction``: ``finger.lateral``/``normal``, or
+    with ``finger.subject`` set, that subject's set in ``direction`` whose preload is nearest
+    ``finger.preload`` (nearest on a log scale: loads scale roughly with preload ratios).
+    Returns ``(table, where)``, ``where`` naming the set for reports."""
+    f = scene.finger
+    if not f.subject:
+        return f[direction], f"finger.{direction}"
+    sets = [(i, s) for i, s in enumerate(f.subjects) if s.name == f.subject and s.direction == direction]
+    if not sets:
+        have = sorted({f"{s.name}/{s.direction}" for s in f.subjects}) or ["none"]
+        raise SceneError(f"{scene.source}: finger.subject = {f.subject!r} has no {direction} set in "
+                         f"finger.subjects (have {', '.join(have)})")
+    p = max(f.preload, 1e-6)
+    i, best = min(sets, key=lambda t: abs(math.log(max(t[1].preload, 1e-6) / p)))
+    return best, f"finger.subjects.{i} ({best.name}, {direction}, {best.preload:g} N)"
+
+
 def finger_load(scene, group):
     """The generalized Maxwell finger on ``group``'s tips, or None without contact."""
     from .plant.finger import MaxwellLoad
 
     if not scene.finger.contact:
         return None
-    f = scene.finger[group.direction]
+    f, _ = finger_params(scene, group.direction)
     return MaxwellLoad(f.mass, f.k0, tuple((b.k, b.tau) for b in f.branches))
 
 
@@ -121,48 +140,41 @@ class Rig:
         self.truth = None
         self.sensed = np.zeros((0, self.block))
         self.sensed_names: list[str] = []  # row names of ``sensed``, for trace readers
-        self._group_caps = {}
+        self._group_loads = {}
+        self.probes = []
         if scene.io.backend == "sim":
             self._build_sim(scene)
-        caps = [self._capacitance(scene, g) for g in groups]
+        loads = [self._drive_load(scene, g) for g in groups]
         self._build_tones(scene)
-        self._build_limiter(limits, caps)
+        self._build_limiter(limits, loads)
         self._compile()
 
     # --- construction -----------------------------------------------------------------------
 
-    def _capacitance(self, scene, name: str) -> float:
-        """The actuator's free capacitance (the limiter's current-to-slope factor), from its
-        model whatever the backend: the same ``limits.current`` must mean the same slope."""
-        if name not in self._group_caps:
-            g = scene.group(name)
-            if g.type != "bimorph":
-                raise SceneError(f"actuator.{name}: the limiter needs the capacitance of a {g.type!r} "
-                                 "actuator, which this version cannot model yet")
-            self._group_caps[name] = beam_model(g, _materials(scene)).capacitance()
-        return self._group_caps[name]
+    def _drive_load(self, scene, name: str) -> tuple:
+        """``(capacitance, resistance)`` of a channel's load (the limiter's current bound), from
+        its model whatever the backend: the same ``limits.current`` must mean the same thing."""
+        if name not in self._group_loads:
+            from .simgroups import drive_load
+
+            self._group_loads[name] = drive_load(scene, scene.group(name))
+        return self._group_loads[name]
 
     def _build_sim(self, scene):
         from .io.sim import SimDevice
         from .plant import TRUTH_NAMES
-        from .plant.bimorph import BimorphPlant, SimGroup
-        from .plant.frontend import Amplifier, CurrentSense
+        from .simgroups import build_group
 
-        mats = _materials(scene)
         groups, ch0, row0 = [], 0, 0
+        self.probes = []  # (trace signal name, unit, group object, row)
         for gi, g in enumerate(scene.actuator):
             n = g.grid[0] * g.grid[1]
-            fe = beam_model(g, mats)
-            s = g.sense
-            sense = CurrentSense(s.shunt, s.aa_cutoff, s.aa_order, s.bits, s.full_scale, s.noise,
-                                 seed=scene.io.seed + 7919 * gi)
-            plant = BimorphPlant(fe, Amplifier(g.amplifier.bandwidth), sense, finger_load(scene, g),
-                                 n_modes=g.beam.modes)
-            sim = SimGroup(plant, self.fs, n, max_block=max(self.block, 1))
-            rows = n * plant.n_seg
+            sim = build_group(scene, g, gi, self.fs, self.block)
+            rows = n * sim.n_sensed
             groups.append((sim, slice(ch0, ch0 + n), slice(row0, row0 + rows)))
-            self.sensed_names += [f"{g.name}.{i}.seg{j}" for i in range(n) for j in range(plant.n_seg)]
-            self._group_caps[g.name] = fe.capacitance()
+            self.sensed_names += [f"{g.name}.{i}.{lab}" for i in range(n) for lab in sim.sensed_labels]
+            self.probes += [(f"{g.name}.{pn}", unit, sim, r) for r, (pn, unit) in enumerate(sim.probe_names)]
+            self._group_loads[g.name] = (sim.capacitance, getattr(sim, "resistance", 0.0))
             ch0, row0 = ch0 + n, row0 + rows
         self.truth_names = TRUTH_NAMES
         self.sensed = np.zeros((row0, self.block))
@@ -180,11 +192,24 @@ class Rig:
         scene_tones = scene.stimulus.tones if scene.stimulus.kind == "tones" else ()
         if scene_tones:
             from .dsp import OscillatorBank, beat_tones
-        for t in scene_tones:
+        pulses = {}  # channel -> (block, freq, duty, high, low): square and pulse tones
+        for i, t in enumerate(scene_tones):
             ch = offsets[t.actuator] + t.channel
             receptor = perception.auto_receptor(t.freq) if t.receptor == "auto" else t.receptor
             thr = perception.threshold_m(t.freq, receptor) if receptor else math.nan
             tgt = perception.target_m(t.freq, receptor, scene.control.margin_db) if receptor else math.nan
+            if t.shape != "sine":
+                if t.beat > 0:
+                    raise SceneError(f"{scene.source}: stimulus.tones.{i}.beat = {t.beat:g}: a beat pair "
+                                     "needs shape = 'sine'")
+                if ch in pulses:
+                    raise SceneError(f"{scene.source}: stimulus.tones.{i}: channel {t.actuator}.{t.channel} "
+                                     "already plays a square/pulse tone (one per channel)")
+                kb = int(math.floor(t.start * self.fs / self.block))
+                high, low, duty = (t.voltage, -t.voltage, 0.5) if t.shape == "square" else (t.voltage, 0.0, t.duty)
+                pulses[ch] = (kb, t.freq, duty, high, low)
+                tones.append(Tone(ch, t.freq, 0.0, t.voltage, receptor, thr, tgt, t.start, (t.freq,), t.shape))
+                continue
             if t.beat > 0:  # a pair of half amplitude each: the envelope peaks at the pair voltage
                 fr, am = (tuple(float(x) for x in a) for a in beat_tones(t.freq, t.beat, t.voltage))
             else:
@@ -203,15 +228,25 @@ class Rig:
         if freqs:
             self.bank = OscillatorBank(self.n_channels, np.array(chans), self.fs, np.array(freqs),
                                        np.zeros(len(freqs)), ramp=self.block)
+        self.pulses = None
+        self._pulse_schedule: dict[int, list] = {}
+        if pulses:
+            from .dsp import PulseTrain
 
-    def _build_limiter(self, groups, caps):
+            # Silent (frequency 0, both levels 0) until a channel's start block.
+            self.pulses = PulseTrain(self.n_channels, self.fs, 0.0, 0.5, 0.0, 0.0)
+            for ch, (kb, f, duty, high, low) in pulses.items():
+                self._pulse_schedule.setdefault(kb, []).append((ch, f, duty, high, low))
+
+    def _build_limiter(self, groups, loads):
         from .safety import Limiter
 
         lim = [g.limits for g in groups]
         self.limiter = Limiter(
             self.fs,
             max_voltage=[g.max_voltage for g in groups],
-            slew=[x.slew for x in lim], current=[x.current for x in lim], capacitance=caps,
+            slew=[x.slew for x in lim], current=[x.current for x in lim],
+            capacitance=[c for c, _ in loads], resistance=[r for _, r in loads],
             temperature=[x.temperature for x in lim], ambient=[x.ambient for x in lim],
             loss_tangent=[x.loss_tangent for x in lim], thermal_resistance=[x.thermal_resistance for x in lim],
             thermal_tau=[x.thermal_tau for x in lim],
@@ -221,7 +256,13 @@ class Rig:
         """Compile (or load from numba's cache) every kernel now, not in the first block."""
         from . import _step
 
-        if self.bank is not None:
+        if self.bank is not None and self.pulses is not None:
+            self._step = _step.step_tones_pulses
+            self._step_args = (*self.bank.args, *self.pulses.args, *self.limiter.args, self.out)
+        elif self.pulses is not None:
+            self._step = _step.step_pulses
+            self._step_args = (*self.pulses.args, *self.limiter.args, self.out)
+        elif self.bank is not None:
             self._step = _step.step_tones
             self._step_args = (*self.bank.args, *self.limiter.args, self.out)
         else:
@@ -240,6 +281,8 @@ class Rig:
         """Write the parameter changes due at block ``k`` (ramped across that block)."""
         for i, amp in self._schedule.get(k, ()):
             self.bank.set(i, amp=amp)
+        for ch, f, duty, high, low in self._pulse_schedule.get(k, ()):
+            self.pulses.set(ch, freq=f, duty=duty, high=high, low=low)
 
     def advance(self) -> int:
         """One block: read the sensed currents, synthesize and limit, write; status bits."""
@@ -258,6 +301,8 @@ class Rig:
         if self.truth is not None:
             sig.update({"tip_um": ("um", self.n_channels), "tip_velocity": ("m/s", self.n_channels),
                         "tip_force": ("N", self.n_channels), "voltage": ("V", self.n_channels)})
+        for name, unit, _, _ in self.probes:
+            sig[name] = (unit, 1)
         sig["target_um"] = ("um", self.n_channels, 0)
         sig["estimated_um"] = ("um", self.n_channels, 0)
         sig["temperature"] = ("degC", self.n_channels, 0)
@@ -274,6 +319,8 @@ class Rig:
             rec["tip_velocity"][...] = self.truth[:, 1, :]
             rec["tip_force"][...] = self.truth[:, 2, :]
             rec["voltage"][...] = self.truth[:, 3, :]
+        for name, _, sim, r in self.probes:
+            rec[name][0] = sim.probe[r, :self.block]
         rec["target_um"][...] = self.targets_um
         rec["estimated_um"][...] = np.nan  # no observer yet (self-sensing issue)
         rec["temperature"][...] = self.limiter.temperature

@@ -13,6 +13,12 @@ Per channel and sample, in this order:
    ``(pi/2) tan(delta) C |v dv/dt|``, the instantaneous form used here (approximate for several
    tones). ``T' = (T_amb + R_th P - T) / tau_th``; above ``temperature`` it raises ``OVERTEMP``.
 
+Coil actuators (electromagnetic, solenoid, Dot, SMA wires) are resistive, not capacitive: a
+channel built with ``capacitance = 0`` and a ``resistance`` R instead has its current bounded by
+a voltage bound ``|v| <= current * R`` (the steady-state coil current V/R never exceeds the limit;
+the inductance only delays it), only the slew bound on the slope, and Joule heating ``v^2 / R``
+in the thermal model.
+
 The motional part of the current is not included in 4: for the demo bimorph it adds 6-10 % to the
 capacitive current below 100 Hz, 14 % at 500 Hz and up to a third near the first resonance, so
 ``current`` should be set with that margin.
@@ -50,7 +56,7 @@ STATUS_NAMES = {
 # limiter state rows
 _V, _T, _FADE_FROM = 0, 1, 2
 # limiter parameter rows
-_VMAX, _DVMAX, _HEAT, _RTH, _ALPHA, _TAMB, _TMAX = range(7)
+_VMAX, _DVMAX, _HEAT, _RTH, _ALPHA, _TAMB, _TMAX, _JOULE = range(8)
 
 
 @kernel
@@ -58,7 +64,8 @@ def limit_block(x, state, params, fade, counts):
     """Limit ``x`` (n_channels, n) in place; return the OR of status bits raised.
 
     ``state`` (3, n_channels): last output V, temperature degC, fade start V.
-    ``params`` (7, n_channels): see the row constants (``_ALPHA`` holds 1 / (fs tau_th)).
+    ``params`` (8, n_channels): see the row constants (``_ALPHA`` holds 1 / (fs tau_th),
+    ``_JOULE`` 1 / R for a coil, 0 for a piezo).
     ``fade`` int64 (2,): samples done and length of a shutdown fade (length 0 = running).
     ``counts`` int64 (2, n_channels): samples voltage-limited and slew-limited so far.
 
@@ -117,9 +124,11 @@ def limit_block(x, state, params, fade, counts):
                 counts[1, c] += n_s
                 status |= LIMIT_SLEW
         heat = abs(row[0] * (row[0] - v0))
+        joule = row[0] * row[0]
         for i in range(1, n):
             heat += abs(row[i] * (row[i] - row[i - 1]))
-        power = params[_HEAT, c] * heat / n
+            joule += row[i] * row[i]
+        power = (params[_HEAT, c] * heat + params[_JOULE, c] * joule) / n
         a = -math.expm1(-n * params[_ALPHA, c])
         t = state[_T, c]
         t += a * (params[_TAMB, c] + params[_RTH, c] * power - t)
@@ -155,20 +164,26 @@ class Limiter:
     """
 
     def __init__(self, fs, *, max_voltage, slew, current, capacitance, temperature, ambient,
-                 loss_tangent, thermal_resistance, thermal_tau):
+                 loss_tangent, thermal_resistance, thermal_tau, resistance=0.0):
         vmax = np.atleast_1d(np.asarray(max_voltage, dtype=float))
         n = vmax.size
         b = lambda a: np.broadcast_to(np.asarray(a, dtype=float), (n,))  # noqa: E731
-        cap = b(capacitance)
+        cap, res = b(capacitance), b(resistance)
         if not (np.all(np.isfinite(vmax)) and np.all(vmax > 0)):
             raise ValueError(f"max_voltage must be finite and > 0, got {vmax}")
-        if not np.all(cap > 0):
-            raise ValueError(f"capacitance must be > 0 F, got {cap}")
-        # The current limit is a slope limit on a capacitor: |dV/dt| <= I_max / C.
-        slope = np.minimum(b(slew), b(current) / cap)
+        coil = cap == 0.0
+        if not np.all((cap > 0) | (coil & (res > 0))):
+            raise ValueError(f"each channel needs capacitance > 0 F (piezo) or capacitance 0 and "
+                             f"resistance > 0 ohm (coil), got C = {cap}, R = {res}")
+        # The current limit is a slope limit on a capacitor: |dV/dt| <= I_max / C; on a coil it
+        # is a voltage bound |V| <= I_max R.
+        with np.errstate(divide="ignore"):
+            slope = np.where(coil, b(slew), np.minimum(b(slew), b(current) / np.where(coil, 1.0, cap)))
+            vmax = np.where(coil, np.minimum(vmax, b(current) * np.where(coil, res, 1.0)), vmax)
         self.fs = float(fs)
-        self.params = np.empty((7, n))
+        self.params = np.empty((8, n))
         self.params[_VMAX] = vmax
+        self.params[_JOULE] = np.where(coil, 1.0 / np.where(coil, res, 1.0), 0.0)
         self.params[_DVMAX] = slope / self.fs
         self.params[_HEAT] = 0.5 * np.pi * b(loss_tangent) * cap * self.fs
         self.params[_RTH] = b(thermal_resistance)

@@ -250,8 +250,14 @@ def _table(spec: Table, data: Any, path: str, origin: str, required_ok: bool = F
         )
         raise SceneError(f"{origin}: unknown key {full!r}{more}")
     out: dict[str, Any] = {}
+    kind = data.get("type")  # an actuator item's type: keys of other types must be absent
     for name, sub in spec.keys.items():
         full = f"{path}.{name}" if path else name
+        if sub.types and kind not in sub.types:
+            if name in data:
+                raise _fail(origin, full, data[name], f"applies to actuator type {' | '.join(sub.types)}, "
+                            f"not {kind!r}")
+            continue
         if isinstance(sub, Table):
             out[name] = _subtable(sub, data.get(name), full, origin)
         elif name in data:
@@ -352,6 +358,8 @@ def _cross_checks(s: dict, origin: str) -> None:
             raise _fail(origin, f"actuator.{i}.name", a["name"], "names must be unique")
         if "." in a["name"] or not a["name"]:
             raise _fail(origin, f"actuator.{i}.name", a["name"], "must be non-empty without dots")
+        if "beam" not in a:
+            continue
         segs = a["beam"]["segments"]
         if abs(sum(segs) - 1.0) > 1e-9:
             raise _fail(origin, f"{p}.beam.segments", segs, f"fractions must sum to 1 (sum {sum(segs):.6g})")

@@ -34,6 +34,8 @@ class Key:
     length: int | None = None
     min_items: int = 0
     max_items: int | None = None
+    #: actuator types the key applies to (empty: all); elsewhere it must be absent
+    types: tuple[str, ...] = ()
 
     def describe_range(self) -> str:
         if self.choices:
@@ -57,6 +59,8 @@ class Table:
     named: bool = False
     optional: bool = True
     min_items: int = 0
+    #: actuator types the table applies to (empty: all); for other types it must be absent
+    types: tuple[str, ...] = ()
 
 
 def _maxwell(doc: str) -> Table:
@@ -75,6 +79,19 @@ def _maxwell(doc: str) -> Table:
         },
         doc,
     )
+
+
+def _subjects() -> Table:
+    t = _maxwell("")
+    keys = {
+        "name": Key("str", REQUIRED, "", "subject name (several sets may share it)"),
+        "direction": Key("str", REQUIRED, "", "excitation direction the set was measured in",
+                         choices=("lateral", "normal")),
+        "preload": Key("float", REQUIRED, "N", "static finger force the set was measured at", 0.0, 20.0),
+        **t.keys,
+    }
+    return Table(keys, "measured load sets: a group uses the set of `finger.subject` in its direction "
+                 "whose preload is nearest `finger.preload`", many=True)
 
 
 LIMITS = Table(
@@ -118,10 +135,12 @@ ACTUATOR = Table(
                 "modes": Key("int", 4, "", "modes kept in the simulated plant (plus a static correction)", 1, 20),
             },
             "bending beam of a bimorph",
+            types=("bimorph",),
         ),
         "support": Table(
             {
                 "type": Key("str", "clamped", "", "root condition", choices=("clamped", "elastic", "actuator")),
+                "actuator": Key("str", "", "", "group whose moving part carries this beam's root (type actuator)"),
                 "k": Key("float", math.inf, "N/m", "translational root stiffness (elastic)", 0.0, math.inf, open_lo=True),
                 "k_rot": Key("float", math.inf, "N m/rad", "rotational root stiffness (elastic)", 0.0, math.inf, open_lo=True),
             },
@@ -159,6 +178,9 @@ TONE = Table(
         "beat": Key("float", 0.0, "Hz", "beat frequency f_b: tones at f_c -+ f_b/2 (0 = single tone)", 0.0, 1000.0),
         "receptor": Key("str", "auto", "", "receptor the tone addresses (auto: the one with the largest threshold whose band holds freq)", choices=("auto", "pacinian", "meissner", "merkel", "ruffini")),
         "start": Key("float", 0.0, "s", "switch-on time (ramped over one block)", 0.0, 86400.0),
+        "shape": Key("str", "sine", "", "waveform: sine (oscillator, ramped); square (+-voltage, 50 % duty); "
+                     "pulse (0 / voltage at `duty`, for coil pins)", choices=("sine", "square", "pulse")),
+        "duty": Key("float", 0.5, "", "fraction of each cycle at `voltage` (shape pulse)", 0.0, 1.0),
     },
     "open-loop tones (stimulus.kind = \"tones\")",
     many=True,
@@ -194,9 +216,12 @@ SCENE = Table(
         "finger": Table(
             {
                 "contact": Key("bool", True, "", "a finger rests on the actuators"),
-                "preload": Key("float", 0.49, "N", "static finger force; the Maxwell tables below are the load at this preload (no model derives them from it yet)", 0.0, 20.0),
+                "preload": Key("float", 0.49, "N", "static finger force: selects a `subjects` set and sets the normal-contact indentation", 0.0, 20.0),
                 "lateral": _maxwell("generalized Maxwell load for lateral (tangential) motion"),
                 "normal": _maxwell("generalized Maxwell load for normal (indenting) motion"),
+                "subject": Key("str", "", "", "name of a `finger.subjects` parameter set; \"\" uses "
+                               "`finger.lateral`/`finger.normal`"),
+                "subjects": _subjects(),
             },
             "finger load at each actuator tip",
         ),
@@ -265,13 +290,17 @@ def markdown() -> str:
         if isinstance(spec, Table):
             kind = "tables" if spec.many else "named tables" if spec.named else "table"
             req = "required" if not spec.optional else ""
-            lines.append(f"| **`{path}`** | {kind} | {req} | | | {spec.doc} |")
+            lines.append(f"| **`{path}`** | {kind} | {req} | | | {spec.doc}{_only(spec)} |")
             continue
         default = "required" if spec.default is REQUIRED else f"`{_toml(spec.default)}`"
         lines.append(
-            f"| `{path}` | {spec.kind} | {default} | {spec.unit} | {spec.describe_range()} | {spec.doc} |"
+            f"| `{path}` | {spec.kind} | {default} | {spec.unit} | {spec.describe_range()} | {spec.doc}{_only(spec)} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _only(spec) -> str:
+    return f" (type {' | '.join(spec.types)} only)" if spec.types else ""
 
 
 def _toml(v: Any) -> str:

@@ -125,3 +125,32 @@ def test_shutdown_lengthens_the_fade_when_the_slew_limit_needs_it():
     z = np.zeros((1, 32))
     assert not (lim.process(z) & LIMIT_SLEW)
     assert lim.done and z[0, -1] == 0.0
+
+
+def test_coil_channel_bounds_steady_current_and_heats_by_joule_loss():
+    # A coil (capacitance 0, resistance R): |V| <= I_max R, slope only by the slew bound, and
+    # the thermal model settles at T_amb + R_th V^2 / R for a held DC voltage.
+    R, imax, rth = 8.0, 0.5, 20.0
+    lim = make(1, capacitance=0.0, resistance=R, current=imax, max_voltage=12.0, slew=1e9,
+               thermal_resistance=rth, thermal_tau=1e-3)
+    x = np.full((1, 48000), 12.0)
+    assert lim.process(x) & LIMIT_VOLTAGE
+    assert x.max() == pytest.approx(imax * R)           # 4 V, not 12 V
+    assert lim.temperature[0] == pytest.approx(25.0 + rth * (imax * R) ** 2 / R, rel=1e-9)
+    # a piezo channel next to a coil keeps its slope limit; the naive twin agrees
+    lim2 = Limiter(48000.0, max_voltage=[12.0, 100.0], slew=1e9, current=[imax, 0.02],
+                   capacitance=[0.0, 100e-9], resistance=[R, 0.0], temperature=80.0, ambient=25.0,
+                   loss_tangent=0.02, thermal_resistance=rth, thermal_tau=1e-3)
+    ref = Limiter(48000.0, max_voltage=[12.0, 100.0], slew=1e9, current=[imax, 0.02],
+                  capacitance=[0.0, 100e-9], resistance=[R, 0.0], temperature=80.0, ambient=25.0,
+                  loss_tangent=0.02, thermal_resistance=rth, thermal_tau=1e-3)
+    x = np.random.default_rng(1).normal(0, 30, (2, 64))
+    y = x.copy()
+    assert lim2.process(x) == naive_loop.limit_block(y, *ref.args)
+    np.testing.assert_allclose(x, y, rtol=1e-13, atol=1e-12)
+    np.testing.assert_allclose(lim2.state, ref.state, rtol=1e-12)
+
+
+def test_a_channel_with_neither_capacitance_nor_resistance_is_refused():
+    with pytest.raises(ValueError, match="resistance"):
+        make(1, capacitance=0.0)

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..safety import PLANT_NONFINITE, SENSOR_SATURATED
+from ..safety import OVERTEMP, PLANT_NONFINITE, SENSOR_SATURATED
 
-# SimGroup status bits -> rig status bits
-_ADC_SATURATED, _NONFINITE = 1, 2
+# simulated-group status bits -> rig status bits
+_ADC_SATURATED, _NONFINITE, _OVERTEMP = 1, 2, 4
 
 
 class SimDevice:
@@ -23,8 +23,12 @@ class SimDevice:
 
     Parameters
     ----------
-    groups : list of (SimGroup, slice, slice)
-        A simulated group, its rows in ``drive``/``truth`` and its rows in ``sensed``.
+    groups : list of (group, slice, slice)
+        A simulated group, its rows in ``drive``/``truth`` and its rows in ``sensed``. Any
+        plant's group works that follows the simulated-group contract: ``group.kernel(*group.args,
+        drive, sensed, truth) -> status`` over preallocated arrays, ``reset()``, and ``probe``
+        (group-level signals the kernel writes, ``(n_probe, >= block)``). Status bits: 1 a
+        sensor saturated, 2 a state is non-finite, 4 an actuator is over temperature.
     drive : ndarray, shape (n_channels, block)
         The rig's output buffer (read by :meth:`write`).
     sensed : ndarray, shape (n_sensed, block)
@@ -34,16 +38,14 @@ class SimDevice:
     """
 
     def __init__(self, groups, drive: np.ndarray, sensed: np.ndarray, n_truth: int):
-        from ..plant import sim_group_process
-
         self.groups = groups
         self.sensed = sensed
         self._next = np.zeros_like(sensed)
         self.truth = np.zeros((drive.shape[0], n_truth, drive.shape[1]))
-        self._kernel = sim_group_process
         # Kernel arguments fixed once, with views into the buffers: nothing is allocated or
-        # checked per block (SimGroup.process would check shapes every call).
-        self._calls = [(*g.args, drive[ch], self._next[sr], self.truth[ch]) for g, ch, sr in groups]
+        # checked per block (a group's process() would check shapes every call).
+        self._calls = [(g.kernel, (*g.args, drive[ch], self._next[sr], self.truth[ch]))
+                       for g, ch, sr in groups]
 
     def read(self) -> int:
         """Fill ``sensed`` with the currents of the previous block (one block of latency)."""
@@ -53,12 +55,14 @@ class SimDevice:
     def write(self) -> int:
         """Advance every simulated group by the block now in ``drive`` (volts)."""
         status = 0
-        for args in self._calls:
-            s = self._kernel(*args)
+        for kernel, args in self._calls:
+            s = kernel(*args)
             if s & _ADC_SATURATED:
                 status |= SENSOR_SATURATED
             if s & _NONFINITE:
                 status |= PLANT_NONFINITE
+            if s & _OVERTEMP:
+                status |= OVERTEMP
         return status
 
     def compile(self) -> None:

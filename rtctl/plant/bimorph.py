@@ -294,6 +294,13 @@ class SimGroup:
         self.plant, self.fs, self.n_channels, self.sense = plant, fs, nc, sense
         n_seg = plant.n_seg
         self.n_seg = n_seg
+        # the simulated-group contract shared by every plant (see rtctl.io.sim)
+        self.kernel = sim_group_process
+        self.n_sensed = n_seg
+        self.sensed_labels = tuple(f"seg{j}" for j in range(n_seg))
+        self.probe_names = ()
+        self.probe = np.zeros((0, int(max_block)))
+        self.capacitance = float(plant.fe.capacitance())
         rows = list(range(len(TRUTH_NAMES))) + [4 + n_seg + j for j in range(n_seg)]
         s = plant.sys
         sel = StateSpace(s.A, s.B, s.C[rows], s.D[rows])

@@ -1,0 +1,49 @@
+"""Scene actuator groups -> simulated plant groups (the ``sim`` backend), one builder per type.
+
+Every builder returns an object following the simulated-group contract of :mod:`rtctl.io.sim`
+(``kernel``, ``args``, ``n_sensed``, ``sensed_labels``, ``probe_names``, ``probe``,
+``capacitance``, ``reset``). :func:`drive_load` says what the limiter needs to know about the
+load a channel drives, whatever the backend: a piezo's capacitance (current = C dV/dt) or a
+coil's resistance (current = V / R).
+"""
+
+from __future__ import annotations
+
+from .errors import SceneError
+
+
+def _bimorph(scene, g, gi, fs, block):
+    from .plant.bimorph import BimorphPlant, SimGroup
+    from .plant.frontend import Amplifier, CurrentSense
+    from .rig import _materials, beam_model, finger_load
+
+    fe = beam_model(g, _materials(scene))
+    s = g.sense
+    sense = CurrentSense(s.shunt, s.aa_cutoff, s.aa_order, s.bits, s.full_scale, s.noise,
+                         seed=scene.io.seed + 7919 * gi)
+    plant = BimorphPlant(fe, Amplifier(g.amplifier.bandwidth), sense, finger_load(scene, g),
+                         n_modes=g.beam.modes)
+    return SimGroup(plant, fs, g.grid[0] * g.grid[1], max_block=max(block, 1))
+
+
+#: actuator type -> builder(scene, group, group index, fs, block)
+BUILDERS = {"bimorph": _bimorph}
+
+
+def build_group(scene, g, gi: int, fs: float, block: int):
+    """The simulated group of actuator group ``g`` (index ``gi`` in the scene)."""
+    try:
+        builder = BUILDERS[g.type]
+    except KeyError:
+        raise SceneError(f"actuator.{g.name}: type {g.type!r} has no simulated plant yet") from None
+    return builder(scene, g, gi, fs, block)
+
+
+def drive_load(scene, g) -> tuple[float, float]:
+    """``(capacitance F, resistance ohm)`` a channel of group ``g`` drives; one of them is 0."""
+    if g.type == "bimorph":
+        from .rig import _materials, beam_model
+
+        return beam_model(g, _materials(scene)).capacitance(), 0.0
+    raise SceneError(f"actuator.{g.name}: the limiter needs the electrical load of a {g.type!r} "
+                     "actuator, which this version cannot model yet")
