@@ -66,7 +66,36 @@ def _parser() -> argparse.ArgumentParser:
 
     scene_cmd("check", "validate a scene; list what it needs and what it leaves out", _check)
     scene_cmd("model", "actuator model facts: natural frequencies, static values, capacitance", _model)
+
+    # Tools living in their own subpackages parse their own options (``main(argv)``).
+    for name, help_, target in (
+        ("selfsense", "transfer-matrix admittance plots and the observer accuracy sweep (SCENE ...)",
+         "rtctl.selfsense.cli:main"),
+        ("render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main"),
+        ("bench", "benchmarks: `bench numerics` (work-precision, stability), `bench render`",
+         None),
+    ):
+        t = sub.add_parser(name, help=help_, description=help_, add_help=False)
+        t.add_argument("rest", nargs=argparse.REMAINDER)
+        t.set_defaults(func=_delegate, target=target, tool=name)
     return p
+
+
+BENCHES = {"numerics": "rtctl.numerics.cli:main", "render": "rtctl.render.bench:main_bench"}
+
+
+def _delegate(args) -> int:
+    import importlib
+
+    rest, target = list(args.rest), args.target
+    if target is None:  # bench: the first word picks the benchmark
+        if not rest or rest[0] not in BENCHES:
+            print(f"usage: rtctl bench {{{','.join(BENCHES)}}} [options]  (loop speed: make bench)",
+                  file=sys.stderr)
+            return 2
+        target = BENCHES[rest.pop(0)]
+    module, func = target.split(":")
+    return int(getattr(importlib.import_module(module), func)(rest) or 0)
 
 
 def _load(args):

@@ -248,11 +248,19 @@ class SupportSpec:
         Translational stiffness, N/m (``inf`` = rigid).
     k_rot : float
         Rotational stiffness, N m/rad (``inf`` = rigid).
+    mass : float
+        Mass moving with the root's translation, kg (``elastic`` only): a support that is
+        itself the moving part of another actuator (the bimodal display's perpendicular
+        actuator carries the bimorph; seed 000 section 3.3, R_m).
+    inertia : float
+        Rotary inertia on the root's rotation, kg m^2 (``elastic`` only).
     """
 
     kind: str = "clamped"
     k: float = math.inf
     k_rot: float = math.inf
+    mass: float = 0.0
+    inertia: float = 0.0
 
     def __post_init__(self):
         if self.kind not in _SUPPORTS:
@@ -271,6 +279,14 @@ class SupportSpec:
                     f"SupportSpec.{name} = {value!r} is given for a clamped support; "
                     "use kind='elastic' for a compliant root"
                 )
+            object.__setattr__(self, name, value)
+        for name, dof in (("mass", "k"), ("inertia", "k_rot")):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ModelError(f"SupportSpec.{name} must be finite and >= 0, got {value!r}")
+            if value and getattr(self, dof) == math.inf:
+                raise ModelError(f"SupportSpec.{name} = {value!r} sits on a rigid DOF ({dof} = inf): "
+                                 f"give a finite {dof} for a moving support")
             object.__setattr__(self, name, value)
 
 
@@ -491,11 +507,12 @@ def build_beam(spec: BeamSpec, support: SupportSpec | None = None) -> BeamFE:
 
     # Root: springs on the kept DOFs, infinite ones removed.
     keep = np.ones(n_full, dtype=bool)
-    for dof, kk in ((0, support.k), (1, support.k_rot)):
+    for dof, kk, mm in ((0, support.k, support.mass), (1, support.k_rot, support.inertia)):
         if kk == math.inf:
             keep[dof] = False
         else:
             K[dof, dof] += kk
+            M[dof, dof] += mm
     table = np.full(n_full, -1, dtype=np.intp)
     table[keep] = np.arange(int(keep.sum()))
     return BeamFE(
