@@ -28,6 +28,9 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"rtctl: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into `head` and the like: not an error
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print("rtctl: interrupted", file=sys.stderr)
         return 130

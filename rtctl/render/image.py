@@ -1,0 +1,134 @@
+"""Loading and validating images for rendering: one clear line for every bad input.
+
+Accepted: 8-bit grayscale or 8-bit colour (BGR, as OpenCV reads it) images with both sides
+between :data:`MIN_SIDE` and :data:`MAX_SIDE` pixels and at most :data:`MAX_PIXELS` pixels.
+Everything else raises :class:`ImageError` naming the file, what is wrong and how to fix it.
+"""
+
+from __future__ import annotations
+
+import os
+
+import cv2
+import numpy as np
+
+from rtctl.errors import RtctlError
+
+__all__ = ["ImageError", "load_image", "check_image", "to_gray", "MIN_SIDE", "MAX_SIDE", "MAX_PIXELS"]
+
+#: Smallest side accepted, px: the 5x5 Gaussian and the 3x3 Sobel/closing kernels need an interior.
+MIN_SIDE = 8
+#: Largest side, px (OpenCV's own decoder limit is 2**30 pixels in total).
+MAX_SIDE = 16384
+#: Largest image, pixels: 64 Mpx is 64 MB per 8-bit plane and ~1.5 GB for all the maps a beat
+#: renderer keeps (labels, summed-area tables); larger images should be downscaled first.
+MAX_PIXELS = 1 << 26
+
+
+class ImageError(RtctlError, ValueError):
+    """An image cannot be rendered: the message names the file, the cause and the fix."""
+
+
+def load_image(path) -> np.ndarray:
+    """Read an image file as 8-bit gray ``(H, W)`` or 8-bit BGR ``(H, W, 3)``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Any format OpenCV decodes (PNG, JPEG, BMP, TIFF, ...).
+
+    Returns
+    -------
+    ndarray, uint8, shape (H, W) or (H, W, 3)
+
+    Raises
+    ------
+    ImageError
+        Missing file, empty file, not an image, 16-bit, with an alpha channel, too small or too
+        large.
+
+    Examples
+    --------
+    >>> from matplotlib import cbook
+    >>> load_image(cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)).shape
+    (600, 512, 3)
+    """
+    p = os.fspath(path)
+    if not os.path.exists(p):
+        raise ImageError(f"{p}: no such file; give the path of an image file")
+    if os.path.isdir(p):
+        raise ImageError(f"{p}: is a directory, not an image file")
+    size = os.path.getsize(p)
+    if size == 0:
+        raise ImageError(f"{p}: file is empty (0 bytes); give an image file")
+    _check_header(p)
+    # IMREAD_UNCHANGED keeps 16-bit depth and the alpha channel so we can refuse them plainly
+    # instead of letting OpenCV silently convert them.
+    img = cv2.imread(p, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ImageError(f"{p}: not an image OpenCV can read; give a PNG, JPEG, BMP or TIFF file")
+    return check_image(img, name=p)
+
+
+def _check_header(p: str) -> None:
+    """Refuse huge images from the header alone, before decoding allocates the pixels."""
+    try:
+        from PIL import Image  # matplotlib depends on Pillow; it reads sizes without decoding
+    except ImportError:  # pragma: no cover - then the decoded array is checked instead
+        return
+    try:
+        with Image.open(p) as im:
+            w, h = im.size
+    except Exception:  # not a format Pillow knows: OpenCV decides below
+        return
+    _check_size(h, w, p)
+
+
+def _check_size(h: int, w: int, name: str) -> None:
+    if h < MIN_SIDE or w < MIN_SIDE:
+        raise ImageError(f"{name}: {w}x{h} px is too small; images need at least {MIN_SIDE} px on each side")
+    if h > MAX_SIDE or w > MAX_SIDE or h * w > MAX_PIXELS:
+        raise ImageError(f"{name}: {w}x{h} px is too large (limit {MAX_SIDE} px a side and {MAX_PIXELS >> 20} Mpx); "
+                         "downscale it first")
+
+
+def check_image(img, name: str = "image") -> np.ndarray:
+    """Validate an image array and return it C-contiguous.
+
+    Parameters
+    ----------
+    img : ndarray, uint8, shape (H, W), (H, W, 1) or (H, W, 3)
+        Gray or BGR. ``bool`` arrays are taken as black (False) / white (True).
+    name : str
+        How messages refer to the image.
+
+    Returns
+    -------
+    ndarray, uint8, shape (H, W) or (H, W, 3)
+    """
+    img = np.asarray(img)
+    if img.dtype == np.bool_:
+        img = img.astype(np.uint8) * 255
+    if img.size == 0:
+        raise ImageError(f"{name}: image is empty (shape {img.shape}); give a non-empty image")
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim == 3 and img.shape[2] == 4:
+        raise ImageError(f"{name}: has an alpha channel (RGBA); flatten it onto a background "
+                         "(e.g. cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)) and save it without alpha")
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
+        raise ImageError(f"{name}: shape {img.shape} is not a gray (H, W) or colour (H, W, 3) image")
+    if img.dtype != np.uint8:
+        bits = 8 * img.dtype.itemsize
+        raise ImageError(f"{name}: {bits}-bit {img.dtype.kind == 'f' and 'float ' or ''}pixels; rendering needs "
+                         "8-bit images: convert it (e.g. cv2.convertScaleAbs(img, alpha=255 / img.max()))")
+    _check_size(img.shape[0], img.shape[1], name)
+    return np.ascontiguousarray(img)
+
+
+def to_gray(img) -> np.ndarray:
+    """8-bit gray ``(H, W)`` from a validated gray or BGR image (ITU-R 601 luma, as OpenCV)."""
+    img = check_image(img)
+    if img.ndim == 3:
+        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    return img
