@@ -24,6 +24,7 @@ COMPONENTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "selfsense": ("transfer-matrix self-sensing observer", ("rtctl.selfsense",)),
     "control": ("closed-loop amplitude control to the perception targets", ("rtctl.control",)),
     "render": ("image rendering to per-pin stimuli", ("rtctl.render", "cv2")),
+    "render.braille": ("Braille text to pin frames", ("rtctl.render",)),
     "io.sim": ("simulated rig behind the block I/O contract", ("rtctl.io.sim",)),
     "io.audio": ("audio interface", ("rtctl.io.audio", "sounddevice")),
     "io.daq": ("DAQ", ("rtctl.io.daq", "nidaqmx")),
@@ -34,7 +35,7 @@ COMPONENTS: dict[str, tuple[str, tuple[str, ...]]] = {
 #: components that exist in this version of rtctl; the others are refused with a clear message.
 AVAILABLE = frozenset({
     "safety.limiter", "dsp.oscillator", "dsp.pulse", "dsp.lockin",
-    "plant.bimorph", "plant.finger", "io.sim",
+    "plant.bimorph", "plant.finger", "io.sim", "render", "render.braille",
 })
 
 
@@ -72,8 +73,15 @@ def needs(scene) -> Needs:
             need["dsp.oscillator"] = f"stimulus.kind = 'tones' ({sines} sine tone(s))"
         if len(st.tones) > sines:
             need["dsp.pulse"] = f"stimulus.tones with shape square/pulse ({len(st.tones) - sines})"
-    else:
-        need["render"] = f"stimulus.kind = {st.kind!r}"
+    elif st.kind == "braille":
+        need["render.braille"] = "stimulus.kind = 'braille'"
+        need["dsp.pulse"] = "Braille pins are held levels"
+    else:  # image (OpenCV) or shape (drawn with OpenCV)
+        need["render"] = f"stimulus.kind = {st.kind!r}" + (f", method {st.method!r}" if st.kind == "image" else "")
+        if st.kind == "image" and st.method == "beat":
+            need["dsp.oscillator"] = "beat rendering drives sines (cell pairs at f_c -+ f_b/2)"
+        else:
+            need["dsp.pulse"] = "binary pins and pin frequencies are pulse trains / held levels"
     if scene.control.mode == "closed":
         need["selfsense"] = "control.mode = 'closed'"
         need["dsp.lockin"] = "control.mode = 'closed'"

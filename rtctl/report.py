@@ -6,7 +6,8 @@ finger's 1.4 s Maxwell branch) over the analysis window: the last 0.5 s of the r
 periods of the channel's lowest tone if that is longer, capped at the second half of the run. For
 a beat pair it is the sum of both tones' amplitudes, the peak of the envelope. For a square or
 pulse tone (binary pins, SMA taxels) the fundamental says little about the motion: the amplitude
-is half the peak-to-peak stroke over the whole periods of the analysis window.
+is half the peak-to-peak stroke over the whole periods of the analysis window; so it is for a
+channel driven by a rendered stimulus (no tone), over the analysis window.
 """
 
 from __future__ import annotations
@@ -89,6 +90,11 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             "v_peak": float(np.max(np.abs(drive))) if n else 0.0,
             "limited": bool(rig.limiter.counts[:, ch].sum() > 0),
         }
+        if tip is not None and not freqs and n and np.all(np.isfinite(tip)):
+            # a rendered stimulus (image, Braille, shape): no tone to fit, so the stroke over
+            # the analysis window (half peak-to-peak) says how far the pin moved
+            seg = tip[t >= t[-1] - analysis_window(n / fs, [])]
+            row["true_um"] = 0.5 * float(seg.max() - seg.min())
         if tip is not None and freqs:
             win = analysis_window(n / fs, freqs)
             m = t >= t[-1] - win
@@ -117,7 +123,8 @@ def _um(x: float) -> float | None:
 
 
 def _fmt(v, spec: str) -> str:
-    return "-" if v is None else format(v, spec)
+    width = int(spec.split(".")[0] or 0)
+    return f"{'-':>{width}}" if v is None else format(v, spec)
 
 
 def print_table(summary: dict) -> None:

@@ -229,7 +229,13 @@ class Rig:
             self.bank = OscillatorBank(self.n_channels, np.array(chans), self.fs, np.array(freqs),
                                        np.zeros(len(freqs)), ramp=self.block)
         self.pulses = None
+        self.render = None
         self._pulse_schedule: dict[int, list] = {}
+        if scene.stimulus.kind != "tones":
+            from .stimulus import RenderStage
+
+            self.render = RenderStage(scene, offsets, self.n_channels, self.fs, self.block)
+            self.bank, self.pulses = self.render.bank, self.render.pulses
         if pulses:
             from .dsp import PulseTrain
 
@@ -283,6 +289,8 @@ class Rig:
             self.bank.set(i, amp=amp)
         for ch, f, duty, high, low in self._pulse_schedule.get(k, ()):
             self.pulses.set(ch, freq=f, duty=duty, high=high, low=low)
+        if self.render is not None:
+            self.render.apply(k)
 
     def advance(self) -> int:
         """One block: read the sensed currents, synthesize and limit, write; status bits."""

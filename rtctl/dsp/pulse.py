@@ -106,6 +106,17 @@ class PulseTrain:
                 self.pending[row] = v
         self.pending[_k.Q_FLAG] = 1.0
 
+    def set_range(self, channels: slice, freq=None, duty=None, high=None, low=None):
+        """:meth:`set` for the contiguous channels ``channels`` (scalars or their shape)."""
+        c0, c1, step = channels.indices(self.n_channels)
+        if step != 1 or c1 <= c0:
+            raise ValueError(f"channels must be a non-empty contiguous slice, got {channels!r}")
+        values = self._checked(freq, duty, high, low, c1 - c0)
+        for row, v in zip((_k.Q_FREQ, _k.Q_DUTY, _k.Q_HIGH, _k.Q_LOW), values):
+            if v is not None:
+                self.pending[row, c0:c1] = v
+        self.pending[_k.Q_FLAG, c0:c1] = 1.0
+
     def set_level(self, c, on):
         """Level mode for a latching pin: hold ``high`` (on) or ``low`` (off) from the next call."""
         self.set(c, freq=0.0, duty=1.0 if on else 0.0)
