@@ -26,8 +26,28 @@ def _bimorph(scene, g, gi, fs, block):
     return SimGroup(plant, fs, g.grid[0] * g.grid[1], max_block=max(block, 1))
 
 
+def sma_taxel(g):
+    """The SMA taxel model of group ``g`` (no simulation state: also the limiter's load)."""
+    from .plant.sma import SmaTaxel
+
+    p = g.sma
+    return SmaTaxel(prestrain=p.prestrain, h_still=p.h_still, h_forced=p.h_forced, cooling=g.cooling,
+                    t_ambient=g.limits.ambient, t_max=p.t_max, t_cut=p.t_cut)
+
+
+def _sma(scene, g, gi, fs, block):
+    from .plant.sma import SmaGroup
+
+    p = g.sma
+    group = SmaGroup(sma_taxel(g), fs, g.grid[0] * g.grid[1], max_block=max(block, 1), mech_fs=p.mech_fs,
+                     crossbar=p.crossbar, rows=g.grid[0], slot=p.slot)
+    group.f_ext[:] = p.push
+    group.resistance = group.plant.resistance
+    return group
+
+
 #: actuator type -> builder(scene, group, group index, fs, block)
-BUILDERS = {"bimorph": _bimorph}
+BUILDERS = {"bimorph": _bimorph, "sma": _sma}
 
 
 def build_group(scene, g, gi: int, fs: float, block: int):
@@ -45,5 +65,7 @@ def drive_load(scene, g) -> tuple[float, float]:
         from .rig import _materials, beam_model
 
         return beam_model(g, _materials(scene)).capacitance(), 0.0
+    if g.type == "sma":
+        return 0.0, sma_taxel(g).resistance
     raise SceneError(f"actuator.{g.name}: the limiter needs the electrical load of a {g.type!r} "
                      "actuator, which this version cannot model yet")
