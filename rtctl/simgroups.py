@@ -46,8 +46,31 @@ def _sma(scene, g, gi, fs, block):
     return group
 
 
+def pvdf_plate(scene, g):
+    """The PVDF plate of group ``g`` with the scene's finger on ``plate.finger_cell``."""
+    from .plant.pvdf import PvdfPlate
+    from .rig import finger_load
+
+    p = g.plate
+    finger = finger_load(scene, g)
+    pc = tuple(p.probe_cells)
+    return PvdfPlate(rows=g.grid[0], cols=g.grid[1], plate_length=p.length, plate_width=p.width,
+                     plate_thickness=p.thickness, plate_E=p.E, plate_nu=p.nu, plate_rho=p.rho,
+                     gap=p.gap, film_thickness=p.film_thickness, zeta=p.damping,
+                     max_mode_hz=p.max_mode_hz, amplifier_bandwidth_hz=g.amplifier.bandwidth,
+                     finger=finger, finger_cell=tuple(p.finger_cell),
+                     preload=scene.finger.preload if finger is not None else 0.0,
+                     probe_cells=(pc[:2], pc[2:]))
+
+
+def _pvdf(scene, g, gi, fs, block):
+    from .plant.pvdf import PvdfGroup
+
+    return PvdfGroup(pvdf_plate(scene, g), fs, max_block=max(block, 1))
+
+
 #: actuator type -> builder(scene, group, group index, fs, block)
-BUILDERS = {"bimorph": _bimorph, "sma": _sma}
+BUILDERS = {"bimorph": _bimorph, "sma": _sma, "pvdf": _pvdf}
 
 
 def build_group(scene, g, gi: int, fs: float, block: int):
@@ -65,6 +88,8 @@ def drive_load(scene, g) -> tuple[float, float]:
         from .rig import _materials, beam_model
 
         return beam_model(g, _materials(scene)).capacitance(), 0.0
+    if g.type == "pvdf":
+        return pvdf_plate(scene, g).capacitance, 0.0
     if g.type == "sma":
         return 0.0, sma_taxel(g).resistance
     raise SceneError(f"actuator.{g.name}: the limiter needs the electrical load of a {g.type!r} "
