@@ -1,0 +1,564 @@
+"""Work-precision problems: one plant, one input, one stated reference, several ways to run it.
+
+A :class:`Problem` holds everything the report needs for one plant:
+
+* the **reference** output on the sample grid ``t_k = k / fs`` and a sentence saying what it is;
+* **settings** of our kernels (and of baselines that reuse our discrete matrices, such as
+  ``scipy.signal.dlsim``), each a ``prepare() -> run`` pair so that building and compiling stay
+  out of the timing;
+* a continuous model ``rhs(t, y, u)`` with the input ``u(t)`` for ``scipy.integrate.solve_ivp``,
+  restarted at every discontinuity of the input (``breaks``) so that adaptive methods are not
+  charged for stepping over jumps.
+
+Builders are registered by name (:func:`register`, :data:`PROBLEMS`); each takes ``quick`` and
+returns a :class:`Problem`. Linear plants use :func:`bimorph_problem`'s pattern (an analytic
+steady-state reference); any plant offering the simulated-group contract plus ``rhs``/``y0``/
+``outputs`` gets one through :func:`group_problem` in a few lines, e.g.::
+
+    @register("solenoid")
+    def _solenoid(quick=False):
+        plant = SolenoidPlant()
+        return group_problem("solenoid", lambda fs, k: SolenoidGroup(plant, fs, 1, substeps=k),
+                             plant.rhs, plant.y0, plant.outputs, fs=48000.0,
+                             levels=[0.0, 12.0, 0.0, -12.0], hold_s=0.01 if quick else 0.05)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import scipy.integrate
+import scipy.signal
+
+from rtctl.errors import ModelError
+from rtctl.plant.lti import StateSpace, augment_tones, c2d, tone_state
+
+__all__ = ["Problem", "Setting", "PROBLEMS", "register", "build", "bimorph_problem",
+           "default_bimorph_plant", "group_problem", "integrate", "relative_error",
+           "TRUTH_ROWS"]
+
+#: Rows compared by every problem: the group contract's truth rows.
+TRUTH_ROWS = ("tip_m", "tip_velocity_m_s", "tip_force_n", "voltage_v")
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One way of producing the outputs on the sample grid.
+
+    Attributes
+    ----------
+    method : str
+        Family shown as one line in the diagram, e.g. ``"rtctl foh"``, ``"dlsim zoh"``.
+    setting : str
+        The knob within the family, e.g. ``"fs x4"``.
+    prepare : callable
+        ``prepare() -> run``; ``run() -> ndarray, shape (n_outputs, n_samples)``. ``prepare``
+        builds, discretizes and compiles (not timed); ``run`` is timed and must be repeatable.
+    ours : bool
+        True for rtctl kernels, False for baselines.
+    """
+
+    method: str
+    setting: str
+    prepare: Callable
+    ours: bool = True
+
+
+@dataclass(frozen=True)
+class Problem:
+    """A plant, an input and a reference, for the work-precision report.
+
+    Attributes
+    ----------
+    name : str
+    description : str
+        The plant and the input, one line.
+    reference_doc : str
+        What the reference is, one line (printed with the report).
+    fs : float
+        Output grid rate, Hz; outputs are compared at ``t_k = k / fs``.
+    n_samples : int
+    output_names : tuple of str
+    reference : callable
+        ``() -> ndarray, shape (n_outputs, n_samples)`` (may be expensive; called once).
+    settings : tuple of Setting
+    rhs : callable
+        ``rhs(t, y, u) -> dy/dt`` of one channel.
+    y0 : ndarray, shape (n_states,)
+    input : callable
+        ``input(t, seg) -> u`` inside segment ``seg`` (the drive voltage, V).
+    outputs : callable
+        ``outputs(Y, t, seg) -> ndarray, shape (n_outputs, len(t))`` from states
+        ``Y, shape (n_states, len(t))`` inside segment ``seg``.
+    breaks : ndarray
+        Segment start times, s, starting with 0 (the input may jump only there).
+    y_scale : ndarray, shape (n_states,)
+        Typical magnitude of each state; ``atol = rtol * y_scale``.
+    jac : callable, optional
+        ``jac(t, y, u) -> (n_states, n_states)``.
+    linear : bool
+    """
+
+    name: str
+    description: str
+    reference_doc: str
+    fs: float
+    n_samples: int
+    output_names: tuple
+    reference: Callable
+    settings: tuple
+    rhs: Callable
+    y0: np.ndarray
+    input: Callable
+    outputs: Callable
+    breaks: np.ndarray
+    y_scale: np.ndarray
+    jac: Callable | None = None
+    linear: bool = False
+    _cache: dict = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def t(self) -> np.ndarray:
+        """Sample times, s, shape (n_samples,)."""
+        return np.arange(self.n_samples) / self.fs
+
+    @property
+    def t_end(self) -> float:
+        return self.n_samples / self.fs
+
+    def reference_outputs(self) -> np.ndarray:
+        """The reference, computed once, shape (n_outputs, n_samples)."""
+        if "ref" not in self._cache:
+            self._cache["ref"] = np.asarray(self.reference(), dtype=np.float64)
+        return self._cache["ref"]
+
+
+PROBLEMS: dict = {}
+
+
+def register(name: str):
+    """Decorator: register ``builder(quick=False) -> Problem`` under ``name``."""
+    def deco(builder):
+        PROBLEMS[name] = builder
+        return builder
+    return deco
+
+
+def build(name: str, quick: bool = False) -> Problem:
+    """Build the registered problem ``name``."""
+    if name not in PROBLEMS:
+        raise ModelError(f"no work-precision problem {name!r}; registered: "
+                         f"{', '.join(sorted(PROBLEMS)) or 'none'}")
+    return PROBLEMS[name](quick=quick)
+
+
+def relative_error(y, ref) -> float:
+    """Largest error on the grid relative to each row's peak, worst row.
+
+    ``max_rows max_k |y - ref| / max_k |ref|``; rows whose reference is identically zero are
+    compared absolutely. NaN or Inf anywhere gives ``inf``.
+
+    Parameters
+    ----------
+    y, ref : ndarray, shape (n_outputs, n_samples)
+    """
+    y, ref = np.asarray(y, dtype=np.float64), np.asarray(ref, dtype=np.float64)
+    if y.shape != ref.shape or not np.all(np.isfinite(y)):
+        return math.inf
+    scale = np.max(np.abs(ref), axis=1)
+    scale[scale == 0.0] = 1.0
+    return float(np.max(np.max(np.abs(y - ref), axis=1) / scale))
+
+
+def integrate(problem: Problem, method: str, rtol: float, atol_scale: float | None = None,
+              max_step: float = np.inf):
+    """Run ``solve_ivp`` over every input segment and return the outputs on the grid.
+
+    Parameters
+    ----------
+    problem : Problem
+    method : {"Radau", "BDF", "LSODA", "RK45", ...}
+    rtol : float
+    atol_scale : float, optional
+        ``atol = atol_scale * problem.y_scale`` (default ``rtol``).
+    max_step : float
+
+    Returns
+    -------
+    y : ndarray, shape (n_outputs, n_samples)
+        NaN where the integrator failed.
+    wall_s : float
+        Time spent inside ``solve_ivp`` (output evaluation excluded).
+    """
+    import time
+
+    atol = (rtol if atol_scale is None else atol_scale) * problem.y_scale
+    t = problem.t
+    breaks = np.append(np.asarray(problem.breaks, dtype=np.float64), problem.t_end)
+    y = np.full((len(problem.output_names), t.size), np.nan)
+    state = np.asarray(problem.y0, dtype=np.float64).copy()
+    wall = 0.0
+    # LSODA may abort at t = 0 on loose tolerances unless it is given a first step
+    # (REFERENCES.md, Numerics); it also rejects a constant-array jac (scipy issue 10864).
+    extra = {"first_step": 0.1 / problem.fs} if method == "LSODA" else {}
+    for seg in range(breaks.size - 1):
+        ta, tb = breaks[seg], breaks[seg + 1]
+        idx = np.flatnonzero((t >= ta) & (t < tb))
+        t_eval = np.append(t[idx], tb)
+
+        def fun(tt, yy, seg=seg):
+            return problem.rhs(tt, yy, problem.input(tt, seg))
+        if problem.jac is not None and method in ("Radau", "BDF", "LSODA"):
+            extra["jac"] = (lambda tt, yy, seg=seg: problem.jac(tt, yy, problem.input(tt, seg)))
+        t0 = time.perf_counter()
+        sol = scipy.integrate.solve_ivp(fun, (ta, tb), state, method=method, t_eval=t_eval,
+                                        rtol=rtol, atol=atol, max_step=max_step, **extra)
+        wall += time.perf_counter() - t0
+        if sol.status != 0 or sol.y.shape[1] != t_eval.size:
+            break
+        if idx.size:
+            y[:, idx] = problem.outputs(sol.y[:, :-1], t[idx], seg)
+        state = sol.y[:, -1]
+    return y, wall
+
+
+# --------------------------------------------------------------------------------------------
+# The bimorph channel (with finger): a linear plant, analytic reference.
+
+
+def default_bimorph_plant(finger_branches=((300.0, 0.004), (150.0, 0.07), (80.0, 1.4)),
+                          finger_mass=1e-4, finger_k0=300.0, damping=0.01, n_modes=4,
+                          amp_bandwidth_hz=20e3, shunt_ohm=100.0, aa_cutoff_hz=15e3):
+    """The bimorph channel of the bundled scenes: 15 x 1.5 mm PZT-5A parallel bimorph, two
+    equal electrode segments, three-branch Maxwell finger, 20 kHz amplifier, 15 kHz AA filter.
+
+    Parameters are SI (N/m, s, kg, Hz, ohm); ``finger_branches=None`` leaves the finger off.
+
+    Returns
+    -------
+    BimorphPlant
+    """
+    from rtctl.plant import (BUILTIN, Amplifier, BeamSpec, BimorphPlant, CurrentSense, Layer,
+                             MaxwellLoad, build_fe)
+    pzt = BUILTIN["PZT-5A"]
+    fe = build_fe(BeamSpec(15e-3, 1.5e-3, (Layer(pzt, 0.3e-3), Layer(pzt, 0.3e-3)),
+                           "parallel", (0.5, 0.5), damping))
+    finger = None if finger_branches is None else \
+        MaxwellLoad(finger_mass, finger_k0, tuple(finger_branches))
+    return BimorphPlant(fe, Amplifier(amp_bandwidth_hz), CurrentSense(shunt_ohm, aa_cutoff_hz),
+                        finger, n_modes=n_modes)
+
+
+def sine_steady_state(sys: StateSpace, freq_hz: float, amplitude: float):
+    """Initial state and output phasor of the periodic response to ``amplitude sin(w t)``.
+
+    With ``X = (j w I - A)^-1 B amplitude`` the state ``x(t) = Im(X e^{j w t})`` solves
+    ``x' = A x + B u`` exactly for ``u = amplitude sin(w t)`` (no transient), so starting from
+    ``x0 = Im X`` the analytic output is ``y(t) = Im(Y e^{j w t})``, ``Y = C X + D amplitude``.
+
+    Returns
+    -------
+    x0 : ndarray, shape (n_states,)
+    X : ndarray, shape (n_states,), complex
+    Y : ndarray, shape (n_outputs,), complex
+    """
+    w = 2.0 * math.pi * freq_hz
+    X = np.linalg.solve(1j * w * np.eye(sys.n_states) - sys.A, sys.B[:, 0] * amplitude)
+    Y = sys.C @ X + sys.D[:, 0] * amplitude
+    return X.imag.copy(), X, Y
+
+
+def _lti_settings(sel, cascade, x0, freq_hz, amplitude, fs, n, zoh_rates, foh_rates,
+                  dlsim_rates, plant=None):
+    """Settings of the linear problem: our kernel (SimGroup, LtiRunner) and dlsim."""
+    from rtctl.numerics.runner import LtiRunner
+
+    w = 2.0 * math.pi * freq_hz
+    aug = augment_tones(sel, [freq_hz])
+    x0_aug = np.concatenate([x0, tone_state([amplitude])])
+
+    def discrete(kind, k):
+        dt = 1.0 / (fs * k)
+        if kind == "tones":
+            return c2d(aug, dt, "zoh")
+        return c2d(sel, dt, kind)
+
+    def fine_input(kind, k):
+        if kind == "tones":
+            return np.zeros((1, n * k))
+        # u[0] = 0: with foh the discrete state x[k] - Gamma2 u[k] then starts at x0 exactly.
+        return np.ascontiguousarray(amplitude * np.sin(w * np.arange(n * k) / (fs * k)))[None]
+
+    def runner_setting(kind, k):
+        def prepare():
+            sysd = discrete(kind, k)
+            tones = kind == "tones"
+            run = LtiRunner(sysd, blocks=None if tones else cascade, input_free=tones)
+            run.set_state(x0_aug if tones else x0)
+            u = fine_input(kind, k)
+            y = np.empty((1, sysd.n_outputs, u.shape[1]))
+            run.process(u[:, :8].copy(), y[:, :, :8].copy())   # compile outside the timing
+
+            def go():
+                run.reset()
+                run.process(u, y)
+                return y[0, :, ::k]
+            go.form = run.modal.form
+            return go
+        return Setting(f"rtctl {kind}", f"fs x{k}", prepare)
+
+    def dlsim_setting(kind, k):
+        def prepare():
+            sysd = discrete(kind, k)
+            u = fine_input(kind, k)[0]
+            xi = x0_aug if kind == "tones" else x0
+            system = (sysd.A, sysd.B, sysd.C, sysd.D, sysd.dt)
+
+            def go():
+                _, yout, _ = scipy.signal.dlsim(system, u, x0=xi)
+                return yout.T[:, ::k]
+            go.form = "dense"
+            return go
+        return Setting(f"dlsim {kind}", f"fs x{k}", prepare, ours=False)
+
+    out = []
+    if plant is not None:
+        def prepare_group():
+            from rtctl.plant import SimGroup
+            g = SimGroup(plant, fs, 1)
+            z0 = np.linalg.solve(g.modal.T, x0)
+            u = fine_input("zoh", 1)
+            sensed = np.empty((g.n_seg, n))
+            truth = np.empty((1, 4, n))
+            g.process(u[:, :8].copy(), sensed[:, :8].copy(), truth[:, :, :8].copy())
+
+            def go():
+                g.reset()
+                g.state[:, 0] = z0
+                g.process(u, sensed, truth)
+                return truth[0]
+            go.form = g.modal.form
+            return go
+        out.append(Setting("rtctl SimGroup zoh", "fs x1", prepare_group))
+    out += [runner_setting("zoh", k) for k in zoh_rates]
+    out += [runner_setting("foh", k) for k in foh_rates]
+    out.append(runner_setting("tones", 1))
+    for kind, rates in (("zoh", dlsim_rates[:1]), ("foh", dlsim_rates), ("tones", (1,))):
+        out += [dlsim_setting(kind, k) for k in rates]
+    return tuple(out)
+
+
+@register("bimorph")
+def bimorph_problem(quick: bool = False, fs: float = 48000.0, freq_hz: float = 250.0,
+                    amplitude_v: float = 100.0, duration_s: float | None = None,
+                    plant=None) -> Problem:
+    """The bimorph channel with finger under a continuous sine, against its analytic response.
+
+    **Input model.** The reference sees the continuous sine ``u(t) = amplitude_v sin(2 pi
+    freq_hz t)`` and starts on its periodic orbit (:func:`sine_steady_state`), so the
+    reference output is exactly ``Im(H(j w) amplitude e^{j w t})`` from the frequency response,
+    with no transient and no integrator. Our kernels see that sine sampled at ``fs x k``:
+
+    * ``zoh`` (``SimGroup``, the rig's kernel, and :class:`~rtctl.numerics.runner.LtiRunner`):
+      exact for the DAC staircase, so against a continuous sine its error is the half-sample
+      hold delay, O(1/(fs k)) -- the input model, not the integrator;
+    * ``foh``: exact for the straight lines through the samples, O(1/(fs k)^2);
+    * ``tones``: the sine generated by oscillator states inside the plant
+      (:func:`~rtctl.plant.lti.augment_tones`), exact to round-off at any rate.
+
+    ``dlsim`` runs the very same discrete matrices (so it has the same error; only its time
+    differs); ``solve_ivp`` integrates ``x' = A x + B u(t)`` with the continuous sine.
+
+    Parameters
+    ----------
+    quick : bool
+        Shorter run and fewer settings (for tests).
+    fs : float
+        Output rate, Hz.
+    freq_hz, amplitude_v : float
+        The drive sine (default 250 Hz, 100 V peak).
+    duration_s : float, optional
+        Default 0.05 s (quick: 0.01 s).
+    plant : BimorphPlant, optional
+        Default :func:`default_bimorph_plant`.
+
+    Returns
+    -------
+    Problem
+    """
+    plant = default_bimorph_plant() if plant is None else plant
+    n = int(round((duration_s or (0.01 if quick else 0.05)) * fs))
+    s = plant.sys
+    sel = StateSpace(s.A, s.B, s.C[:4], s.D[:4])
+    x0, X, Y = sine_steady_state(sel, freq_hz, amplitude_v)
+    w = 2.0 * math.pi * freq_hz
+    A, b, C, D = sel.A, sel.B[:, 0], sel.C, sel.D[:, 0]
+
+    def reference():
+        return (Y[:, None] * np.exp(1j * w * np.arange(n) / fs)[None]).imag
+
+    def u_of(t, seg=0):
+        return amplitude_v * np.sin(w * t)
+
+    if quick:
+        rates = dict(zoh_rates=(1, 4), foh_rates=(1, 4, 16), dlsim_rates=(1, 4))
+    else:
+        rates = dict(zoh_rates=(1, 4, 16, 64), foh_rates=(1, 2, 4, 8, 16, 32),
+                     dlsim_rates=(1, 4, 16))
+    settings = _lti_settings(sel, plant.cascade, x0, freq_hz, amplitude_v, fs, n,
+                             plant=plant, **rates)
+    return Problem(
+        name="bimorph",
+        description=(f"bimorph + 3-branch finger ({s.n_states} states, modes "
+                     f"{', '.join(f'{f:.0f}' for f in plant.modes_hz)} Hz), "
+                     f"{amplitude_v:g} V sine at {freq_hz:g} Hz, {n} samples at {fs:g} Hz"),
+        reference_doc=("analytic periodic response Im(H(jw) A e^{jwt}) to a continuous sine, "
+                       "started on its orbit"),
+        fs=fs, n_samples=n, output_names=TRUTH_ROWS, reference=reference, settings=settings,
+        rhs=lambda t, y, u: A @ y + b * u, y0=x0, input=u_of,
+        outputs=lambda Y, t, seg: C @ Y + D[:, None] * u_of(t)[None],
+        breaks=np.zeros(1), y_scale=np.abs(X), jac=lambda t, y, u: A, linear=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Any plant offering the simulated-group contract plus rhs / y0 / outputs.
+
+
+def group_problem(name: str, make_group: Callable, rhs: Callable, y0, outputs: Callable, *,
+                  fs: float, levels, hold_s: float, substeps=(1, 2, 4, 8, 16),
+                  description: str = "", jac: Callable | None = None, truth_lag: int = 0,
+                  ref_method: str = "Radau", ref_rtol: float = 1e-12,
+                  y_scale=None) -> Problem:
+    """A work-precision problem for a plant behind the simulated-group contract.
+
+    **Input model.** The drive is a staircase: ``levels[i]`` (V) held for ``hold_s`` each, the
+    same samples the group kernel receives (a DAC holds them), so the reference sees exactly
+    the kernel's input: a ``ref_method`` run at ``ref_rtol``, restarted at each level change.
+    Output sample ``k`` is compared at ``t_k = k / fs`` with the state at ``t_k`` and drive
+    ``u_k`` (a group reporting the state after its sample sets ``truth_lag=1``).
+
+    Parameters
+    ----------
+    name : str
+    make_group : callable
+        ``make_group(fs, substeps) -> group`` with one channel (``process``, ``reset``,
+        ``n_sensed``); ``reset()`` must put it in the state ``y0``.
+    rhs : callable
+        ``rhs(t, y, u) -> dy/dt`` of one channel.
+    y0 : array_like, shape (n_states,)
+    outputs : callable
+        ``outputs(y, u) -> (4,)``, the truth rows.
+    fs : float
+        Sample rate, Hz.
+    levels : array_like
+        Drive levels, V.
+    hold_s : float
+        Time each level is held, s (rounded to whole samples).
+    substeps : sequence of int
+        Settings of the kernel in the diagram.
+    jac : callable, optional
+        ``jac(t, y, u)`` for the implicit integrators.
+    truth_lag : {0, 1}
+    ref_method, ref_rtol : str, float
+        Reference integrator and tolerance.
+    y_scale : array_like, optional
+        Typical state magnitudes for ``atol``; default from a ``rtol = 1e-6`` pilot run.
+
+    Returns
+    -------
+    Problem
+    """
+    levels = np.asarray(levels, dtype=np.float64)
+    hold = max(1, int(round(hold_s * fs)))
+    n = hold * levels.size
+    drive = np.ascontiguousarray(np.repeat(levels, hold))[None]
+    y0 = np.asarray(y0, dtype=np.float64)
+    if truth_lag not in (0, 1):
+        raise ModelError(f"truth_lag must be 0 or 1, got {truth_lag!r}")
+
+    def out_fn(Y, t, seg):
+        u = levels[seg]
+        return np.stack([np.asarray(outputs(Y[:, i], u), dtype=np.float64)
+                         for i in range(Y.shape[1])], axis=1)
+
+    base = dict(name=name, description=description or f"{name}: {levels.size} drive levels",
+                fs=float(fs), n_samples=n, output_names=TRUTH_ROWS, rhs=rhs, y0=y0,
+                input=lambda t, seg: levels[seg], outputs=out_fn,
+                breaks=np.arange(levels.size) * hold / fs, jac=jac, linear=False)
+    if y_scale is None:
+        pilot = Problem(reference_doc="", reference=None, settings=(),
+                        y_scale=np.maximum(np.abs(y0), 1e-300), **base)
+        y_scale = _state_scale(pilot)
+
+    def make_setting(k):
+        def prepare():
+            g = make_group(float(fs), int(k))
+            sensed = np.empty((g.n_sensed, n))
+            truth = np.empty((1, 4, n))
+            g.reset()
+            g.process(drive[:, :8].copy(), sensed[:, :8].copy(), truth[:, :, :8].copy())
+
+            def go():
+                g.reset()
+                g.process(drive, sensed, truth)
+                if truth_lag:
+                    return np.concatenate([out_fn(y0[:, None], np.zeros(1), 0),
+                                           truth[0, :, :-1]], axis=1)
+                return truth[0]
+            go.form = "group"
+            return go
+        return Setting("rtctl group", f"substeps {k}", prepare)
+
+    prob = Problem(reference_doc=(f"{ref_method} at rtol {ref_rtol:g} of the same drive "
+                                  "staircase, restarted at each level change"),
+                   reference=None, settings=tuple(make_setting(k) for k in substeps),
+                   y_scale=np.asarray(y_scale, dtype=np.float64), **base)
+
+    def reference():
+        y = integrate(prob, ref_method, ref_rtol)[0]
+        if not np.all(np.isfinite(y)):
+            raise ModelError(f"{name}: the {ref_method} reference failed at rtol {ref_rtol:g} "
+                             "(step size too small at a switch?); loosen ref_rtol")
+        return y
+    object.__setattr__(prob, "reference", reference)
+    return prob
+
+
+def _state_scale(pilot: Problem) -> np.ndarray:
+    """Peak magnitude of each state over a loose Radau run (floor: 1e-9 of the largest)."""
+    breaks = np.append(pilot.breaks, pilot.t_end)
+    y, peak = pilot.y0.copy(), np.abs(pilot.y0)
+    for seg in range(breaks.size - 1):
+        sol = scipy.integrate.solve_ivp(lambda t, yy: pilot.rhs(t, yy, pilot.input(t, seg)),
+                                        (breaks[seg], breaks[seg + 1]), y, method="Radau",
+                                        rtol=1e-6, atol=1e-12 * max(1.0, float(np.max(peak))))
+        peak = np.maximum(peak, np.max(np.abs(sol.y), axis=1))
+        y = sol.y[:, -1]
+    top = float(np.max(peak)) if peak.size else 1.0
+    return np.maximum(peak, 1e-9 * top if top > 0 else 1e-300)
+
+
+@register("skin_contact")
+def skin_contact_problem(quick: bool = False, fs: float = 48000.0, preload_n: float = 0.0):
+    """Kinematic pin on the skin with zero preload (``rtctl.plant.contact``): contact is lost
+    and regained as the pin velocity staircase moves it up and down (a hybrid, switched-linear
+    plant; ``HybridGroup`` at 1-16 substeps against a Radau run at rtol 1e-11: at 1e-12
+    Radau fails at the contact switches)."""
+    from rtctl.numerics.stability import skin_contact_model
+    from rtctl.plant.hybrid import HybridGroup
+    model, x0, params = skin_contact_model(preload_n)
+    # Pin velocity, m/s, 2 ms each: up 40 um, down past the skin (contact lost), back up.
+    levels = [0.02, -0.04, 0.03] if quick else \
+        [0.02, -0.04, 0.0, 0.03, -0.01, 0.0, 0.05, -0.05, 0.02, -0.02]
+    p = float(preload_n)
+    return group_problem(
+        "skin_contact",
+        lambda f, k: HybridGroup(model, f, 1, x0, params=params, substeps=k),
+        lambda t, y, u: model.rhs(t, y, [u, p]), x0,
+        lambda y, u: model.outputs(y, [u, p])[:4], fs=fs, levels=levels, hold_s=2e-3,
+        substeps=(1, 4, 16) if quick else (1, 2, 4, 8, 16), ref_rtol=1e-11,
+        description=f"kinematic pin on the skin, preload {p:g} N, pin velocity staircase "
+                    f"{len(levels)} x 2 ms at {fs:g} Hz")
