@@ -1,0 +1,187 @@
+"""Real-time observer of a group of bimorph channels: preallocated state for :func:`observer_process`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rtctl.dsp.lockin import LockIn
+from rtctl.errors import ModelError
+from rtctl.selfsense import _kernels
+from rtctl.selfsense.observer import EST_NAMES, N_EST, MAX_COND, design
+
+__all__ = ["Observer", "observer_process", "tone_window"]
+
+#: ``observer_process(*obs.args, drive, sensed) -> int`` (callable from other numba functions).
+observer_process = _kernels.observer_process
+STATUS_NONFINITE = _kernels.STATUS_NONFINITE
+
+
+def tone_window(freqs, fs, hop, max_seconds=1.0) -> int:
+    """Shortest multiple of ``hop`` samples holding a whole number of periods of every tone.
+
+    Over such a window the lock-in has no leakage between the tones or from their mirrors.
+
+    Parameters
+    ----------
+    freqs : array_like
+        Tone frequencies, Hz (zeros and NaN ignored).
+    fs : float
+        Hz.
+    hop : int
+        Samples.
+    max_seconds : float
+        Give up beyond this and return the longest window (some leakage remains).
+
+    Examples
+    --------
+    >>> tone_window([245.0, 255.0], 48000.0, 32)
+    9600
+    """
+    f = np.asarray(freqs, dtype=float).ravel()
+    f = f[np.isfinite(f) & (f > 0)]
+    m_max = max(1, int(max_seconds * fs) // hop)
+    for m in range(1, m_max + 1):
+        cyc = f * (m * hop) / fs
+        if np.all(np.abs(cyc - np.round(cyc)) < 1e-9):
+            return m * hop
+    return m_max * hop
+
+
+class Observer:
+    """Self-sensing observer for ``n_channels`` identical bimorphs, one block at a time.
+
+    Per block: lock-in of the drive and of every sensed segment current at each channel's tones
+    (a sliding window of whole periods), the per-frequency observer matrices of
+    :func:`~rtctl.selfsense.observer.design` applied to those phasors, and the tip deflection
+    rebuilt on the block's samples. Run it with ``observer_process(*obs.args, drive, sensed)``
+    from a numba block step, or with :meth:`process`.
+
+    Parameters
+    ----------
+    beam : TMMBeam
+        Model of the actuators.
+    freqs : array_like, shape (n_channels, n_tones)
+        Driven frequencies per channel, Hz (both tones of a beat pair; 0 or NaN: unused slot).
+    fs : float
+        Hz.
+    block : int
+        Samples per block (the lock-in hop).
+    frontend : FrontEnd, optional
+        Drive and sense chain (default: ideal).
+    window : int, optional
+        Lock-in window, samples (default :func:`tone_window` of all tones).
+    image_load : MaxwellLoad, optional
+        Load assumed for the aliased images.
+    max_cond : float
+        Refuse ill-conditioned frequencies.
+
+    Attributes
+    ----------
+    H : ndarray, shape (n_channels, n_tones, N_EST, 1 + n_seg, 2)
+    cond : ndarray, shape (n_channels, n_tones)
+        Condition number per slot (NaN unused).
+    est : ndarray, shape (n_channels, n_tones, N_EST, 2)
+        Latest estimates (real, imaginary), rows ``EST_NAMES``.
+    wave : ndarray, shape (n_channels, block)
+        Latest rebuilt tip deflection, m.
+
+    Examples
+    --------
+    >>> from rtctl.plant.materials import BUILTIN
+    >>> from rtctl.selfsense.tmm import TMMBeam, laminate_of
+    >>> pzt = BUILTIN["PZT-5A"]
+    >>> beam = TMMBeam(laminate_of(1.5e-3, [(pzt, 0.3e-3), (pzt, 0.3e-3)], "parallel"),
+    ...                15e-3, (0.5, 0.5), 0.01)
+    >>> obs = Observer(beam, [[250.0]], 48000.0, 32)
+    >>> obs.window, obs.est.shape
+    (192, (1, 1, 9, 2))
+    """
+
+    def __init__(self, beam, freqs, fs, block, frontend=None, window=None, image_load=None,
+                 max_cond=MAX_COND):
+        f = np.atleast_2d(np.asarray(freqs, dtype=float))
+        f = np.where(np.isfinite(f), f, 0.0)
+        if np.any(f < 0) or np.any(f >= fs / 2):
+            raise ModelError(f"observer tones must lie in 0 < f < fs/2 = {fs / 2:g} Hz (0 unused)")
+        self.beam, self.fs, self.block, self.frontend = beam, float(fs), int(block), frontend
+        self.freqs = f
+        n_ch, n_t = f.shape
+        n_seg = beam.n_seg
+        self.n_channels, self.n_tones, self.n_seg = n_ch, n_t, n_seg
+        self.window = int(window) if window else tone_window(f, fs, self.block)
+        if self.window % self.block:
+            raise ModelError(f"window = {self.window} must be a multiple of block = {self.block}")
+        self.H = np.zeros((n_ch, n_t, N_EST, 1 + n_seg, 2))
+        self.cond = np.full((n_ch, n_t), np.nan)
+        cache = {}
+        for c in range(n_ch):
+            for k in range(n_t):
+                fk = float(f[c, k])
+                if fk <= 0.0:
+                    continue
+                if fk not in cache:
+                    cache[fk] = design(beam, fk, frontend, image_load=image_load, max_cond=max_cond)
+                ob = cache[fk]
+                self.H[c, k, :, :, 0] = ob.H.real
+                self.H[c, k, :, :, 1] = ob.H.imag
+                self.cond[c, k] = ob.cond
+        self.designs = cache
+        self.lock_u = LockIn(n_ch, f, fs, self.window, hop=self.block)
+        self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, self.window, hop=self.block)
+        self.est = np.zeros((n_ch, n_t, N_EST, 2))
+        self.wave = np.zeros((n_ch, self.block))
+        self._u_out = np.zeros((n_ch, n_t, 2))
+        self._i_out = np.zeros((n_ch * n_seg, n_t, 2))
+
+    @property
+    def args(self) -> tuple:
+        """Kernel arguments: ``observer_process(*args, drive, sensed)``."""
+        return (*self.lock_u.args, *self.lock_i.args, self._u_out, self._i_out, self.H,
+                2.0 / self.window, self.est, self.wave)
+
+    def process(self, drive, sensed) -> int:
+        """Advance by one block.
+
+        Parameters
+        ----------
+        drive : ndarray, shape (n_channels, block), float64, C-contiguous
+            Volts written to the DAC.
+        sensed : ndarray, shape (n_channels * n_seg, block), float64, C-contiguous
+            Current readings, A.
+
+        Returns
+        -------
+        int
+            0, or ``STATUS_NONFINITE``.
+        """
+        for name, a, rows in (("drive", drive, self.n_channels), ("sensed", sensed, self.n_channels * self.n_seg)):
+            if a.shape != (rows, self.block) or a.dtype != np.float64 or not a.flags.c_contiguous:
+                raise ModelError(f"{name} must be C-contiguous float64 of shape {(rows, self.block)}, "
+                                 f"got {a.dtype} {a.shape}")
+        return observer_process(*self.args, drive, sensed)
+
+    def reset(self) -> None:
+        """Empty windows, references at phase 0."""
+        self.lock_u.reset()
+        self.lock_i.reset()
+        self.est[:] = 0.0
+        self.wave[:] = 0.0
+
+    def phasors(self, name="tip_m") -> np.ndarray:
+        """Latest estimate of one ``EST_NAMES`` row, shape (n_channels, n_tones), complex."""
+        e = self.est[:, :, EST_NAMES.index(name)]
+        return e[..., 0] + 1j * e[..., 1]
+
+    @property
+    def amplitude(self) -> np.ndarray:
+        """Tip deflection amplitude per tone, m (peak), shape (n_channels, n_tones)."""
+        return np.abs(self.phasors())
+
+    @property
+    def phase(self) -> np.ndarray:
+        """Tip deflection phase per tone against the drive's reference, rad."""
+        return np.angle(self.phasors())
+
+    def impedance(self) -> np.ndarray:
+        """Online finger impedance per tone, tip force over tip velocity, N s/m (complex)."""
+        return self.phasors("tip_force_n") / self.phasors("tip_velocity_m_s")

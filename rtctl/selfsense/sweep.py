@@ -1,0 +1,203 @@
+"""Accuracy of the self-sensing observer on the simulated finite-element plant.
+
+One case: a :class:`~rtctl.plant.SimGroup` channel (the FE truth: reduced beam, finger,
+amplifier, current sense with noise, DAC staircase) driven by a tone or a beat pair; the
+:class:`~rtctl.selfsense.rt.Observer` built from a (possibly mismatched) TMM model reads the
+drive and the sensed currents; the truth's tip deflection and force are demodulated with the
+same lock-in. Errors are per tone, after the transient has settled.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rtctl.dsp.lockin import LockIn
+from rtctl.errors import ModelError
+from rtctl.selfsense.frontend import FrontEnd
+from rtctl.selfsense.rt import Observer
+from rtctl.selfsense.tmm import TMMBeam
+
+__all__ = ["FINGER_LOADS", "finger_loads", "run_case", "sweep"]
+
+
+def finger_loads(base=None) -> dict:
+    """Named finger loads: the scene's (or seed 000's 50 g) load, a 2 g one, and no contact.
+
+    The 2 g load is the 50 g one with every stiffness scaled by 0.3 and the skin mass by 0.5:
+    tangential stiffness grows with normal force (Pataky 2005); seed 000 gives no table for
+    2 g, so this is an assumption, stated here and in docs/selfsense.md.
+
+    Parameters
+    ----------
+    base : MaxwellLoad, optional
+        The 50 g load (default: the bundled scene's lateral finger).
+
+    Returns
+    -------
+    dict
+        ``{"50g": MaxwellLoad, "2g": MaxwellLoad, "none": None}``
+    """
+    from rtctl.plant.finger import MaxwellLoad
+
+    if base is None:
+        base = MaxwellLoad(1e-4, 300.0, ((300.0, 0.004), (150.0, 0.07), (80.0, 1.4)))
+    soft = MaxwellLoad(base.mass * 0.5, base.k0 * 0.3, tuple((k * 0.3, tau) for k, tau in base.branches))
+    return {"50g": base, "2g": soft, "none": None}
+
+
+FINGER_LOADS = ("50g", "2g", "none")
+
+
+def run_case(fe, load, freqs, volts, fs=48000.0, block=32, snr_db=60.0, mismatch=None,
+             amplifier_hz=20e3, aa_cutoff_hz=20e3, aa_order=2, shunt=100.0, n_modes=4,
+             settle_s=0.1, windows=2, seed=3, load_mismatch=0.0):
+    """Simulate one channel and score the observer.
+
+    Parameters
+    ----------
+    fe : BeamFE
+        Truth beam.
+    load : MaxwellLoad or None
+        Truth finger.
+    freqs, volts : sequence of float
+        Drive tones (Hz) and their amplitudes (V peak): one tone, or both tones of a beat pair.
+    snr_db : float
+        Sensed-current signal-to-noise ratio (rms of the smaller segment current over the
+        noise rms), dB.
+    mismatch : dict, optional
+        Model errors of the observer's TMM, e.g. ``{"thickness": 0.05, "d31": -0.05}``.
+    load_mismatch : float
+        Relative error of the finger stiffnesses assumed by the observer's image model.
+    n_modes : int
+        Modes of the truth plant.
+    settle_s : float
+        Seconds simulated before scoring (the beam's transient, ~5 time constants).
+    windows : int
+        Lock-in windows averaged over when scoring (the estimate at the end of each).
+
+    Returns
+    -------
+    dict
+        ``amp_err_pct``, ``phase_err_deg``, ``force_err_pct`` (worst over the tones),
+        ``cond`` (largest), ``est`` and ``true`` tip phasors (m), ``impedance`` (N s/m,
+        estimated and true), ``wave_err`` (rms waveform error relative to rms truth).
+    """
+    from rtctl.plant import TRUTH_NAMES, Amplifier, BimorphPlant, CurrentSense, SimGroup
+
+    freqs = np.asarray(freqs, dtype=float)
+    volts = np.asarray(volts, dtype=float)
+    amp = Amplifier(amplifier_hz)
+    # Noise from the continuous current amplitude of the weaker segment at the first tone.
+    probe = BimorphPlant(fe, amp, CurrentSense(shunt, aa_cutoff_hz, aa_order), load, n_modes=n_modes)
+    cur = np.abs(probe.frequency_response(freqs)[:, 4:4 + fe.Cp.size]) * volts[:, None]
+    i_rms = float(np.min(np.sqrt(np.sum(cur**2, axis=0) / 2.0)))
+    noise_v = shunt * i_rms * 10.0 ** (-snr_db / 20.0) if math.isfinite(snr_db) else 0.0
+    sense = CurrentSense(shunt, aa_cutoff_hz, aa_order, bits=24,
+                         full_scale_v=max(1.0, 4.0 * shunt * float(np.max(np.sum(cur, axis=0)))),
+                         noise_rms_v=noise_v, seed=seed)
+    plant = BimorphPlant(fe, amp, sense, load, n_modes=n_modes)
+    group = SimGroup(plant, fs, 1, max_block=block)
+    model = TMMBeam.from_fe(fe, mismatch)
+    front = FrontEnd(fs, amplifier_hz, aa_cutoff_hz, aa_order)
+    img_load = load
+    if load is not None and load_mismatch:
+        from rtctl.plant.finger import MaxwellLoad
+
+        s = 1.0 + load_mismatch
+        img_load = MaxwellLoad(load.mass, load.k0 * s, tuple((k * s, t) for k, t in load.branches))
+    obs = Observer(model, freqs[None, :], fs, block, front, image_load=img_load)
+    W = obs.window
+    truth_lock = LockIn(3, np.repeat(freqs[None, :], 3, axis=0), fs, W, hop=block)
+    n_seg = plant.n_seg
+    drive = np.zeros((1, block))
+    sensed = np.zeros((n_seg, block))
+    truth = np.zeros((1, len(TRUTH_NAMES), block))
+    tr_rows = np.zeros((3, block))
+    n_settle = int(math.ceil(settle_s * fs / W)) * W // block
+    n_blocks = n_settle + windows * W // block
+    t0 = 0
+    w = 2 * math.pi * freqs
+    mass = load.mass if load is not None else 0.0
+    acc_est = np.zeros((len(freqs), 9), dtype=complex)
+    acc_tru = np.zeros((len(freqs), 3), dtype=complex)
+    wave_err = wave_ref = 0.0
+    for b in range(n_blocks):
+        t = (t0 + np.arange(block)) / fs
+        drive[0] = np.sum(volts[:, None] * np.cos(w[:, None] * t[None, :]), axis=0)
+        t0 += block
+        status = group.process(drive, sensed, truth)
+        if status & 2:
+            raise ModelError("simulated plant went non-finite")
+        obs.process(drive, sensed)
+        tr_rows[0] = truth[0, 0]
+        tr_rows[1] = truth[0, 2]
+        tr_rows[2] = truth[0, 1]
+        truth_lock.process(tr_rows)
+        if b >= n_settle:
+            wave_err += float(np.sum((obs.wave[0] - truth[0, 0]) ** 2))
+            wave_ref += float(np.sum(truth[0, 0] ** 2))
+            if (b + 1 - n_settle) % (W // block) == 0:
+                e = obs.est[0, :, :, 0] + 1j * obs.est[0, :, :, 1]
+                acc_est += e
+                acc_tru += truth_lock.phasor.T
+    est = acc_est / windows
+    tru = acc_tru / windows
+    x_true = tru[:, 0]
+    f_true = tru[:, 1] - w**2 * mass * x_true       # tissue force + skin inertia = Q(L)
+    x_est, f_est = est[:, 0], est[:, 4]
+    amp_err = np.abs(x_est) / np.abs(x_true) - 1.0
+    ph_err = np.angle(x_est / x_true)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if load is None:   # no contact: the true force is 0; score it against k_static x
+            ref = np.abs(x_true) / fe.static_compliance()
+            force_err = np.abs(f_est) / ref
+        else:
+            force_err = np.abs(f_est - f_true) / np.abs(f_true)
+    z_est = f_est / est[:, 1]
+    z_true = np.array([load.impedance(wi) for wi in w]) if load is not None else np.zeros(len(w))
+    return {
+        "amp_err_pct": float(100 * np.max(np.abs(amp_err))),
+        "phase_err_deg": float(np.degrees(np.max(np.abs(ph_err)))),
+        "force_err_pct": float(100 * np.max(force_err)),
+        "cond": float(np.nanmax(obs.cond)),
+        "est": x_est, "true": x_true, "impedance_est": z_est, "impedance_true": z_true,
+        "wave_err": math.sqrt(wave_err / wave_ref) if wave_ref > 0 else math.nan,
+        "window": W,
+    }
+
+
+def sweep(fe, base_load=None, freqs=(10.0, 40.0, 120.0, 250.0, 500.0, 1000.0), volts=20.0,
+          snr_db=60.0, mismatches=(None,), loads=FINGER_LOADS, beat_hz=10.0, **kw):
+    """Accuracy over frequencies, loads and model mismatches (single tones and beat pairs).
+
+    Returns
+    -------
+    dict
+        ``{"cases": [{"freq_hz", "beat_hz", "load", "snr_db", "mismatch_pct", "mismatch",
+        "amp_err_pct", "phase_err_deg", "force_err_pct", "cond", "wave_err_pct"}]}``
+    """
+    table = finger_loads(base_load)
+    cases = []
+    for mm in mismatches:
+        mm_d = dict(mm or {})
+        fmis = mm_d.pop("finger", 0.0)
+        for name in loads:
+            for f in freqs:
+                for beat in ((0.0, beat_hz) if beat_hz else (0.0,)):
+                    fr = [f] if beat == 0.0 else [f - beat / 2, f + beat / 2]
+                    vv = [volts] * len(fr) if beat == 0.0 else [volts / 2] * 2
+                    r = run_case(fe, table[name], fr, vv, snr_db=snr_db, mismatch=mm_d,
+                                 load_mismatch=fmis, **kw)
+                    cases.append({
+                        "freq_hz": float(f), "beat_hz": float(beat), "load": name,
+                        "snr_db": float(snr_db),
+                        "mismatch_pct": float(100 * max([abs(v) for v in (mm or {}).values()] or [0.0])),
+                        "mismatch": {k: float(v) for k, v in (mm or {}).items()},
+                        "amp_err_pct": r["amp_err_pct"], "phase_err_deg": r["phase_err_deg"],
+                        "force_err_pct": r["force_err_pct"], "cond": r["cond"],
+                        "wave_err_pct": 100 * r["wave_err"],
+                    })
+    return {"cases": cases}
+
