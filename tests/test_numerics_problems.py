@@ -164,10 +164,10 @@ def test_group_adapter_on_toy_converges_to_radau_reference():
     assert P.relative_error(y, ref) < 1e-5
 
 
-def test_group_adapter_rejects_bad_lag():
+def test_group_adapter_rejects_negative_lag():
     with pytest.raises(ModelError, match="truth_lag"):
         P.group_problem("toy", None, toy.rhs, np.zeros(2), toy.outputs, fs=FS, levels=[1.0],
-                        hold_s=1e-3, truth_lag=2, y_scale=np.ones(2))
+                        hold_s=1e-3, truth_lag=-1, y_scale=np.ones(2))
 
 
 def test_runner_docstring_example():

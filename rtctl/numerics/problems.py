@@ -431,7 +431,7 @@ def group_problem(name: str, make_group: Callable, rhs: Callable, y0, outputs: C
                   fs: float, levels, hold_s: float, substeps=(1, 2, 4, 8, 16),
                   description: str = "", jac: Callable | None = None, truth_lag: int = 0,
                   ref_method: str = "Radau", ref_rtol: float = 1e-12,
-                  y_scale=None) -> Problem:
+                  y_scale=None, rows=(0, 1, 2, 3)) -> Problem:
     """A work-precision problem for a plant behind the simulated-group contract.
 
     **Input model.** The drive is a staircase: ``levels[i]`` (V) held for ``hold_s`` each, the
@@ -461,11 +461,16 @@ def group_problem(name: str, make_group: Callable, rhs: Callable, y0, outputs: C
         Settings of the kernel in the diagram.
     jac : callable, optional
         ``jac(t, y, u)`` for the implicit integrators.
-    truth_lag : {0, 1}
+    truth_lag : int or "group"
+        Samples by which the group's truth lags its state (``"group"``: ``group.lag_samples``,
+        e.g. the SMA taxel interpolating between mechanical solves).
     ref_method, ref_rtol : str, float
         Reference integrator and tolerance.
     y_scale : array_like, optional
         Typical state magnitudes for ``atol``; default from a ``rtol = 1e-6`` pilot run.
+    rows : sequence of int
+        Truth rows compared (default all four). A quasi-static plant (the SMA pin has no mass)
+        has no meaningful instantaneous velocity to compare, only its position.
 
     Returns
     -------
@@ -476,16 +481,19 @@ def group_problem(name: str, make_group: Callable, rhs: Callable, y0, outputs: C
     n = hold * levels.size
     drive = np.ascontiguousarray(np.repeat(levels, hold))[None]
     y0 = np.asarray(y0, dtype=np.float64)
-    if truth_lag not in (0, 1):
-        raise ModelError(f"truth_lag must be 0 or 1, got {truth_lag!r}")
+    if truth_lag != "group" and not (isinstance(truth_lag, int) and truth_lag >= 0):
+        raise ModelError(f"truth_lag must be an int >= 0 or 'group' (the group's lag_samples), "
+                         f"got {truth_lag!r}")
+
+    rows = list(rows)
 
     def out_fn(Y, t, seg):
         u = levels[seg]
-        return np.stack([np.asarray(outputs(Y[:, i], u), dtype=np.float64)
+        return np.stack([np.asarray(outputs(Y[:, i], u), dtype=np.float64)[rows]
                          for i in range(Y.shape[1])], axis=1)
 
     base = dict(name=name, description=description or f"{name}: {levels.size} drive levels",
-                fs=float(fs), n_samples=n, output_names=TRUTH_ROWS, rhs=rhs, y0=y0,
+                fs=float(fs), n_samples=n, output_names=tuple(TRUTH_ROWS[r] for r in rows), rhs=rhs, y0=y0,
                 input=lambda t, seg: levels[seg], outputs=out_fn,
                 breaks=np.arange(levels.size) * hold / fs, jac=jac, linear=False)
     if y_scale is None:
@@ -504,10 +512,11 @@ def group_problem(name: str, make_group: Callable, rhs: Callable, y0, outputs: C
             def go():
                 g.reset()
                 g.process(drive, sensed, truth)
-                if truth_lag:
-                    return np.concatenate([out_fn(y0[:, None], np.zeros(1), 0),
-                                           truth[0, :, :-1]], axis=1)
-                return truth[0]
+                lag = int(g.lag_samples) if truth_lag == "group" else truth_lag
+                if lag:
+                    first = out_fn(y0[:, None], np.zeros(1), 0)
+                    return np.concatenate([np.repeat(first, lag, axis=1), truth[0, rows, :-lag]], axis=1)
+                return truth[0, rows]
             go.form = "group"
             return go
         return Setting("rtctl group", f"substeps {k}", prepare)
@@ -562,3 +571,7 @@ def skin_contact_problem(quick: bool = False, fs: float = 48000.0, preload_n: fl
         substeps=(1, 4, 16) if quick else (1, 2, 4, 8, 16), ref_rtol=1e-11,
         description=f"kinematic pin on the skin, preload {p:g} N, pin velocity staircase "
                     f"{len(levels)} x 2 ms at {fs:g} Hz")
+
+
+# Plants registered from their own modules (imported last: they use the helpers above).
+from rtctl.numerics import plants as _plants  # noqa: E402,F401

@@ -1,0 +1,65 @@
+"""Work-precision problems of the display plants (beyond the bimorph and the skin contact):
+each plant's group kernel at several substeps against Radau on the same drive staircase."""
+
+from __future__ import annotations
+
+from rtctl.numerics.problems import group_problem, register
+
+
+@register("sma")
+def sma_problem(quick: bool = False):
+    """SMA taxel (forced air): heat the raise spring, let it cool, heat the lower one. The slow
+    physics is thermal (0.45 s) with a snap-through of the pin, so the loop rate here is 4.8 kHz
+    and the knob is samples per mechanical solve. Compared: the pin height (the pin is massless,
+    its velocity is a secant between solves in the kernel)."""
+    from rtctl.plant.sma import SmaGroup, SmaTaxel
+
+    plant = SmaTaxel(cooling="forced")
+    v = plant.voltage_for(110.0)
+    fs = 4800.0
+    return group_problem(
+        "sma", lambda fs_, k: SmaGroup(plant, fs_, 1, max_block=4096, substeps=k),
+        plant.rhs, plant.y0, plant.outputs, fs=fs, levels=[v, 0.0, -v, 0.0],
+        hold_s=0.25 if quick else 1.0, substeps=(16, 4) if quick else (48, 16, 4, 1),
+        truth_lag="group", ref_rtol=1e-9, rows=(0,),
+        description=f"SMA taxel, +-{v:.2f} V held {0.25 if quick else 1.0} s each at {fs:g} Hz")
+
+
+@register("pvdf")
+def pvdf_problem(quick: bool = False):
+    """PVDF plate (6x8 cells, one driven): exact zoh, so the error is round-off at any rate;
+    what it shows is the cost of reaching it against the integrators."""
+    from rtctl.plant.pvdf import PvdfGroup, PvdfPlate
+
+    plant = PvdfPlate()
+    return group_problem(
+        "pvdf", lambda fs_, k: _Single(PvdfGroup(plant, fs_, max_block=4096), plant.ref_channel),
+        plant.rhs, plant.y0, plant.outputs, fs=48000.0, levels=[250.0, -250.0, 0.0],
+        hold_s=2e-3 if quick else 5e-3, substeps=(1,), ref_rtol=1e-10,
+        description="PVDF plate, one cell driven by a +-250 V staircase, 48 kHz")
+
+
+class _Single:
+    """One driven channel of a MIMO group (the others held at 0 V), as a one-channel group."""
+
+    def __init__(self, group, channel):
+        import numpy as np
+
+        self.g, self.c = group, channel
+        self.n_channels = 1
+        self.n_sensed = 0
+        self._np = np
+
+    def reset(self):
+        self.g.reset()
+
+    def process(self, drive, sensed, truth):
+        np = self._np
+        n = drive.shape[1]  # (sensed is not passed on: this view reports truth only)
+        d = np.zeros((self.g.n_channels, n))
+        d[self.c] = drive[0]
+        s = np.zeros((self.g.n_channels * self.g.n_sensed, n))
+        t = np.zeros((self.g.n_channels, 4, n))
+        status = self.g.process(d, s, t)
+        truth[0] = t[self.c]
+        return status
