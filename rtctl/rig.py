@@ -115,6 +115,10 @@ def model_facts(scene) -> dict:
             facts["loaded_natural_frequencies_hz"] = loaded_natural_frequencies(fe, finger, 4)
         else:
             facts["loaded_natural_frequencies_hz"] = list(facts["natural_frequencies_hz"])
+        # the transfer-matrix model of the same beam, an independent check of the FE values
+        from .selfsense.facts import tmm_facts
+
+        facts.update(tmm_facts(fe, finger))
         out[g.name] = facts
     return out
 
