@@ -533,8 +533,9 @@ class TMMBeam:
         D = np.array([L, 1.0, EIr / L, EIr / L**2])
         sup = self.support
         damp = 1.0 + s * self._c(abs(s))
-        ks = sup.k * damp + sup.mass * s * s
-        kr = sup.k_rot * damp + sup.inertia * s * s
+        # (a rigid DOF has no spring term: inf * complex would make NaN parts)
+        ks = 0.0 if math.isinf(sup.k) else sup.k * damp + sup.mass * s * s
+        kr = 0.0 if math.isinf(sup.k_rot) else sup.k_rot * damp + sup.inertia * s * s
         Y = np.zeros((4, 2), dtype=complex)
         if math.isinf(sup.k):
             Y[3, 0] = 1.0                       # w = 0, Q free
