@@ -36,7 +36,7 @@ COMPONENTS: dict[str, tuple[str, tuple[str, ...]]] = {
 AVAILABLE = frozenset({
     "safety.limiter", "dsp.oscillator", "dsp.pulse", "dsp.lockin",
     "plant.bimorph", "plant.finger", "io.sim", "render", "render.braille",
-    "plant.sma", "plant.pvdf",
+    "plant.sma", "plant.pvdf", "plant.em", "plant.dot", "plant.solenoid",
 })
 
 

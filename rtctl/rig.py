@@ -54,8 +54,13 @@ def _materials(scene):
     return out
 
 
-def beam_model(group, materials):
-    """The finite-element beam of a bimorph actuator group (no finger)."""
+def beam_model(group, materials, scene=None):
+    """The finite-element beam of a bimorph actuator group (no finger).
+
+    A ``support.type = "actuator"`` root sits on the moving part of the group named by
+    ``support.actuator`` (an ``em`` group: the bimodal display), whose suspension and armature
+    give the elastic root with its mass (``EMPlant.support_spec``); that needs ``scene``.
+    """
     from .plant.beam import BeamSpec, Layer, SupportSpec, build_beam
 
     b = group.beam
@@ -63,9 +68,26 @@ def beam_model(group, materials):
     spec = BeamSpec(b.length, b.width, layers, b.connection, tuple(b.segments), b.damping, b.elements)
     sup = group.support
     if sup.type == "actuator":
-        raise SceneError(f"actuator.{group.name}.support.type = 'actuator' (a moving support) is not simulated "
-                         "yet; use 'clamped' or 'elastic'")
+        return build_beam(spec, carrier_support(scene, group))
     return build_beam(spec, SupportSpec(sup.type, sup.k, sup.k_rot))
+
+
+def carrier_support(scene, group):
+    """The moving root of a bimorph carried by another actuator group (seed 000 Sec. 3.3, R_m)."""
+    name = group.support.actuator
+    where = f"actuator.{group.name}.support.actuator"
+    if scene is None:
+        raise SceneError(f"{where}: a moving support needs the scene to find its carrier")
+    carrier = scene.group(name)  # a SceneError naming the groups there are
+    if carrier.type != "em":
+        raise SceneError(f"{scene.source}: {where} = {name!r} is a {carrier.type!r} group; a bimorph can ride "
+                         "on an electromagnetic ('em') actuator")
+    if tuple(carrier.grid) != tuple(group.grid):
+        raise SceneError(f"{scene.source}: {where} = {name!r}: grids differ ({list(carrier.grid)} vs "
+                         f"{list(group.grid)}); each bimorph rides on its own carrier pin")
+    from .simgroups import em_plant
+
+    return em_plant(scene, carrier).support_spec()
 
 
 def finger_params(scene, direction: str):
@@ -108,7 +130,7 @@ def model_facts(scene) -> dict:
         if g.type != "bimorph":
             out[g.name] = {"type": g.type, "note": "no model facts for this actuator type yet"}
             continue
-        fe = beam_model(g, mats)
+        fe = beam_model(g, mats, scene)
         facts = beam_facts(fe)
         finger = finger_load(scene, g)
         if finger is not None:

@@ -17,7 +17,7 @@ def _bimorph(scene, g, gi, fs, block):
     from .plant.frontend import Amplifier, CurrentSense
     from .rig import _materials, beam_model, finger_load
 
-    fe = beam_model(g, _materials(scene))
+    fe = beam_model(g, _materials(scene), scene)
     s = g.sense
     sense = CurrentSense(s.shunt, s.aa_cutoff, s.aa_order, s.bits, s.full_scale, s.noise,
                          seed=scene.io.seed + 7919 * gi)
@@ -69,8 +69,65 @@ def _pvdf(scene, g, gi, fs, block):
     return PvdfGroup(pvdf_plate(scene, g), fs, max_block=max(block, 1))
 
 
+def em_plant(scene, g):
+    """The electromagnetic perpendicular actuator of group ``g`` (bimodal display)."""
+    from .plant.em import EMPlant
+    from .rig import finger_load
+
+    p = g.em
+    finger = finger_load(scene, g)
+    kw = dict(resistance=p.resistance, inductance=p.inductance, force_constant=p.force_constant,
+              armature_mass=p.armature_mass, payload_mass=p.payload_mass, stiffness=p.stiffness,
+              damping=p.damping, lateral_stiffness=p.lateral_stiffness, tilt_stiffness=p.tilt_stiffness,
+              armature_inertia=p.armature_inertia, preload=p.preload if finger is not None else 0.0)
+    return EMPlant(**kw, finger=finger)
+
+
+def dot_pin(scene, g):
+    """The latching Dot Braille pin of group ``g``."""
+    from .plant.dot import DotPin
+    from .rig import finger_load
+
+    p = g.dot
+    finger = finger_load(scene, g)
+    return DotPin(supply=p.supply, travel=p.travel, resistance=p.resistance, inductance=p.inductance,
+                  force_constant=p.force_constant, mass=p.mass, damping=p.damping,
+                  latch_force=p.latch_force, finger=finger,
+                  preload=p.preload if finger is not None else 0.0)
+
+
+def _em(scene, g, gi, fs, block):
+    from .plant.em import EMGroup
+
+    return EMGroup(em_plant(scene, g), fs, g.grid[0] * g.grid[1], max_block=max(block, 1))
+
+
+def _dot(scene, g, gi, fs, block):
+    from .plant.dot import DotGroup
+
+    return DotGroup(dot_pin(scene, g), fs, g.grid[0] * g.grid[1], up=g.dot.up, max_block=max(block, 1))
+
+
+def _solenoid(scene, g, gi, fs, block):
+    from .plant.solenoid import SolenoidGroup, SolenoidPin
+    from .rig import finger_load
+
+    p = g.solenoid
+    finger = finger_load(scene, g)
+    pin = SolenoidPin(resistance=p.resistance, inductance=p.inductance, force_constant=p.force_constant,
+                      mass=p.mass, spring=p.spring, spring_preload=p.spring_preload, damping=p.damping,
+                      stroke=p.stroke, stop_stiffness=p.stop_stiffness,
+                      stop_damping_ratio=p.stop_damping_ratio, finger=finger,
+                      preload=p.preload if finger is not None else 0.0)
+    group = SolenoidGroup(pin, fs, g.grid[0] * g.grid[1], max_block=max(block, 1), substeps=p.substeps,
+                          levels=p.levels)
+    group.resistance = p.resistance
+    return group
+
+
 #: actuator type -> builder(scene, group, group index, fs, block)
-BUILDERS = {"bimorph": _bimorph, "sma": _sma, "pvdf": _pvdf}
+BUILDERS = {"bimorph": _bimorph, "sma": _sma, "pvdf": _pvdf, "em": _em, "dot": _dot,
+            "solenoid": _solenoid}
 
 
 def build_group(scene, g, gi: int, fs: float, block: int):
@@ -87,7 +144,13 @@ def drive_load(scene, g) -> tuple[float, float]:
     if g.type == "bimorph":
         from .rig import _materials, beam_model
 
-        return beam_model(g, _materials(scene)).capacitance(), 0.0
+        return beam_model(g, _materials(scene), scene).capacitance(), 0.0
+    if g.type == "em":
+        return 0.0, g.em.resistance
+    if g.type == "solenoid":
+        return 0.0, g.solenoid.resistance
+    if g.type == "dot":
+        return 0.0, g.dot.resistance
     if g.type == "pvdf":
         return pvdf_plate(scene, g).capacitance, 0.0
     if g.type == "sma":

@@ -48,10 +48,7 @@ class RenderStage:
     def __init__(self, scene, offsets, n_channels, fs, block):
         st = scene.stimulus
         name = st.actuator or scene.actuator[0].name
-        try:
-            g = scene.group(name)
-        except KeyError:
-            raise SceneError(f"{scene.source}: stimulus.actuator = {name!r}: no such actuator group") from None
+        g = scene.group(name)  # a SceneError naming the groups there are
         self.group = g
         R, C = g.grid
         c0 = offsets[g.name]

@@ -10,6 +10,8 @@ MODULES = [
     "rtctl.dsp.oscillator", "rtctl.dsp.pulse", "rtctl.dsp.lockin", "rtctl.dsp.envelope",
     "rtctl.plant.materials", "rtctl.plant.beam", "rtctl.plant.facts", "rtctl.plant.finger",
     "rtctl.plant.frontend", "rtctl.plant.lti", "rtctl.plant.bimorph",
+    "rtctl.plant.sma", "rtctl.plant.pvdf", "rtctl.plant.hybrid", "rtctl.plant.contact",
+    "rtctl.plant.solenoid", "rtctl.plant.em", "rtctl.plant.dot", "rtctl.numerics.runner",
 ]
 
 

@@ -52,7 +52,7 @@ def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.
     for g in sc.actuator:
         if g.type != "bimorph":
             continue
-        fe = rig.beam_model(g, mats)
+        fe = rig.beam_model(g, mats, sc)
         finger = rig.finger_load(sc, g)
         kw = dict(fs=fs, block=int(sc.timing.block), amplifier_hz=g.amplifier.bandwidth,
                   aa_cutoff_hz=g.sense.aa_cutoff, aa_order=g.sense.aa_order, shunt=g.sense.shunt,

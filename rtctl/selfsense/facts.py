@@ -45,5 +45,5 @@ def scene_tmm_facts(scene, group, n=4) -> dict:
     """:func:`tmm_facts` for one actuator group of a scene (bimorph groups only)."""
     from rtctl import rig
 
-    fe = rig.beam_model(group, rig._materials(scene))
+    fe = rig.beam_model(group, rig._materials(scene), scene)
     return tmm_facts(fe, rig.finger_load(scene, group), n)
