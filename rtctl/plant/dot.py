@@ -38,6 +38,7 @@ import math
 import numpy as np
 
 from rtctl.errors import ModelError
+from rtctl.plant._checks import positive
 from rtctl.plant.contact import SkinContact, add_skin
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.hybrid import TRUTH_NAMES, HybridBuilder, HybridGroup, Lin, unilateral
@@ -52,11 +53,7 @@ GRID = (4, 4)
 
 
 def _pos(name, v, zero_ok=False):
-    v = float(v)
-    if not (math.isfinite(v) and (v >= 0.0 if zero_ok else v > 0.0)):
-        raise ModelError(f"DotPin {name} must be finite and {'>=' if zero_ok else '>'} 0, "
-                         f"got {v!r}")
-    return v
+    return positive("DotPin", name, v, zero_ok)
 
 
 class DotPin:

@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from rtctl.errors import ModelError
+from rtctl.plant._checks import positive
 from rtctl.plant.contact import SkinContact, add_skin
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.hybrid import TRUTH_NAMES, HybridBuilder, HybridGroup, Lin
@@ -50,12 +51,7 @@ GRID = (4, 4)
 
 
 def _positive(name, value, allow_zero=False):
-    v = float(value)
-    ok = (v >= 0.0) if allow_zero else (v > 0.0)
-    if not (ok and math.isfinite(v)):
-        bound = ">= 0" if allow_zero else "> 0"
-        raise ModelError(f"EMPlant {name} must be finite and {bound}, got {value!r}")
-    return v
+    return positive("EMPlant", name, value, allow_zero)
 
 
 class EMPlant:

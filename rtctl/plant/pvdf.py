@@ -37,6 +37,7 @@ import math
 import numpy as np
 
 from rtctl.errors import ModelError
+from rtctl.plant._checks import positive
 from rtctl.plant import _pvdf_kernels as _k
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.lti import StateSpace, c2d, to_modal
@@ -56,10 +57,7 @@ _Z, _G, _V = 12, 13, 14  # positions of the states in PvdfGroup.args
 
 
 def _pos(name, value):
-    v = float(value)
-    if not (v > 0.0 and math.isfinite(v)):
-        raise ModelError(f"PvdfPlate {name} must be finite and > 0, got {value!r}")
-    return v
+    return positive("PvdfPlate", name, value)
 
 
 class PvdfPlate:

@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from rtctl.errors import ModelError
+from rtctl.plant._checks import positive
 from rtctl.plant import _sma_kernels as _k
 
 __all__ = ["SmaTaxel", "SmaGroup", "sma_group_process", "TRUTH_NAMES"]
@@ -40,10 +41,7 @@ COOLING = ("still", "forced")
 
 
 def _positive(name, v):
-    v = float(v)
-    if not (math.isfinite(v) and v > 0.0):
-        raise ModelError(f"SMA taxel: {name} must be finite and > 0, got {v!r}")
-    return v
+    return positive("SMA taxel:", name, v)
 
 
 class SmaTaxel:
