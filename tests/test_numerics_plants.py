@@ -28,6 +28,16 @@ def test_pvdf_kernel_equals_the_integrated_staircase_response():
     assert relative_error(y, ref) < 1e-8
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["solenoid", "em", "dot"])
+def test_switched_pin_plants_converge_with_substeps(name):
+    # errors are the worst truth row relative to its peak, force rows (contact impacts) included
+    p = build(name, quick=True)
+    ref = p.reference()
+    err = {k: relative_error(y, ref) for k, y in ours(p).items()}
+    assert err["substeps 4"] < err["substeps 1"] and err["substeps 4"] < 0.05
+
+
 def test_display_plants_are_registered():
-    assert {"bimorph", "skin_contact", "sma", "pvdf"} <= set(PROBLEMS)
+    assert {"bimorph", "skin_contact", "sma", "pvdf", "solenoid", "em", "dot"} <= set(PROBLEMS)
     assert np.isfinite(build("sma", quick=True).y0).all()

@@ -63,3 +63,44 @@ class _Single:
         status = self.g.process(d, s, t)
         truth[0] = t[self.c]
         return status
+
+
+def _pin_problem(name, plant, make, levels, hold_s, quick, description):
+    return group_problem(name, make, plant.rhs, plant.y0, plant.outputs, fs=48000.0, levels=levels,
+                         hold_s=hold_s, substeps=(1, 4) if quick else (1, 2, 4, 8), ref_rtol=1e-10,
+                         description=description)
+
+
+@register("solenoid")
+def solenoid_problem(quick: bool = False):
+    """Solenoid pin (seed 003): 5 V pulses throw it against the stiff top stop (1e8 N/m) and the
+    spring returns it to the bottom one, under the finger (switched-linear engine)."""
+    from rtctl.plant.solenoid import SolenoidGroup, SolenoidPin
+
+    plant = SolenoidPin()
+    return _pin_problem("solenoid", plant, lambda fs, k: SolenoidGroup(plant, fs, 1, max_block=4096, substeps=k),
+                        [5.0, 0.0, 5.0, 0.0], 2e-3 if quick else 4e-3, quick,
+                        "solenoid pin, 5 V pulses onto stiff end stops, finger on top, 48 kHz")
+
+
+@register("em")
+def em_problem(quick: bool = False):
+    """EM perpendicular actuator (bimodal display) with the unilateral finger: a voltage staircase
+    that lifts the pin into the skin and pulls it away faster than the skin follows."""
+    from rtctl.plant.em import EMGroup, EMPlant
+
+    plant = EMPlant()
+    return _pin_problem("em", plant, lambda fs, k: EMGroup(plant, fs, 1, max_block=4096, substeps=k),
+                        [3.0, -3.0, 0.0], 3e-3 if quick else 6e-3, quick,
+                        "EM actuator, +-3 V staircase, unilateral finger contact, 48 kHz")
+
+
+@register("dot")
+def dot_problem(quick: bool = False):
+    """Latching Dot pin: an up pulse, hold (latched, unpowered), a down pulse."""
+    from rtctl.plant.dot import DotGroup, DotPin
+
+    plant = DotPin()
+    return _pin_problem("dot", plant, lambda fs, k: DotGroup(plant, fs, 1, max_block=4096, substeps=k),
+                        [5.0, 0.0, -5.0, 0.0], 3e-3 if quick else 5e-3, quick,
+                        "Dot pin, up pulse, latched hold, down pulse, 48 kHz")
