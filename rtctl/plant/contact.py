@@ -36,6 +36,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from rtctl.errors import ModelError
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.hybrid import TRUTH_NAMES, HybridBuilder, HybridModel, Lin, unilateral
@@ -202,3 +204,25 @@ def kinematic_pin_model(skin: SkinContact) -> HybridModel:
             b.output(TRUTH_NAMES[2], Lin()), b.output(TRUTH_NAMES[3], Lin())]
     add_skin(b, skin, Lin.x(xp), Lin.u(0), Lin.u(1), force_row=rows[2])
     return b.build()
+
+
+class PinReference:
+    """The continuous reference interface of a coil pin under the finger (``solve_ivp``'s
+    ``fun`` and the truth rows), shared by the solenoid, EM and Dot plants. A subclass holds
+    ``model`` (a :class:`~rtctl.plant.hybrid.HybridModel` with inputs ``(drive V, preload N)``)
+    and ``preload`` (N)."""
+
+    def _u(self, u):
+        return np.array([float(u), self.preload])
+
+    def rhs(self, t, y, u):
+        """State derivative for drive voltage ``u`` (V) at the pin's preload, shape (n_states,)."""
+        return self.model.rhs(t, y, self._u(u))
+
+    def outputs(self, y, u):
+        """Truth rows ``(height m, velocity m/s, finger force N, coil voltage V)``, shape (4,)."""
+        return self.model.outputs(y, self._u(u))[:len(TRUTH_NAMES)]
+
+    def mode(self, y, u) -> int:
+        """The switched model's mode (bit set of active switches) at ``y``, ``u``."""
+        return self.model.mode(y, self._u(u))

@@ -39,7 +39,7 @@ import numpy as np
 
 from rtctl.errors import ModelError
 from rtctl.plant._checks import positive
-from rtctl.plant.contact import SkinContact, add_skin
+from rtctl.plant.contact import PinReference, SkinContact, add_skin
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.hybrid import TRUTH_NAMES, HybridBuilder, HybridGroup, Lin, unilateral
 from rtctl.plant.solenoid import DEFAULT_FINGER
@@ -56,7 +56,7 @@ def _pos(name, v, zero_ok=False):
     return positive("DotPin", name, v, zero_ok)
 
 
-class DotPin:
+class DotPin(PinReference):
     """Continuous switched-linear model of one latching Dot pin with the finger on top.
 
     Parameters
@@ -201,20 +201,6 @@ class DotPin:
                           force_row=rows[2])
             self.contact_bits = st.when
         return b.build()
-
-    def _u(self, u):
-        return np.array([float(u), self.preload])
-
-    def rhs(self, t, y, u):
-        """State derivative for command ``u`` (V) and the pin's preload, shape (n_states,)."""
-        return self.model.rhs(t, y, self._u(u))
-
-    def outputs(self, y, u):
-        """Truth rows ``(height m, velocity m/s, finger force N, coil voltage V)``, shape (4,)."""
-        return self.model.outputs(y, self._u(u))[:len(TRUTH_NAMES)]
-
-    def mode(self, y, u) -> int:
-        return self.model.mode(y, self._u(u))
 
 
 class DotGroup(HybridGroup):

@@ -34,7 +34,7 @@ import numpy as np
 
 from rtctl.errors import ModelError
 from rtctl.plant._checks import positive
-from rtctl.plant.contact import SkinContact, add_skin
+from rtctl.plant.contact import PinReference, SkinContact, add_skin
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.hybrid import TRUTH_NAMES, HybridBuilder, HybridGroup, Lin
 from rtctl.plant.solenoid import DEFAULT_FINGER
@@ -53,7 +53,7 @@ def _positive(name, value, allow_zero=False):
     return positive("EMPlant", name, value, allow_zero)
 
 
-class EMPlant:
+class EMPlant(PinReference):
     """Continuous model of one electromagnetic perpendicular actuator with a unilateral finger.
 
     Parameters
@@ -174,30 +174,6 @@ class EMPlant:
     def contact_mask(self) -> int:
         """Mode bits that are all on while the pin touches the finger (0 without a finger)."""
         return int(sum(1 << w for w in self.contact_bits))
-
-    def _u(self, u):
-        return np.array([float(u), self.preload])
-
-    def rhs(self, t, y, u):
-        """State derivative of one channel, shape (n_states,) (``solve_ivp``'s ``fun``).
-
-        Parameters
-        ----------
-        t : float
-            Time, s (unused).
-        y : ndarray, shape (n_states,)
-            ``(current A, height m, velocity m/s[, skin m, skin velocity m/s, branch forces N])``.
-        u : float
-            Coil voltage, V (the plant's ``preload`` is the second input).
-        """
-        return self.model.rhs(t, y, self._u(u))
-
-    def outputs(self, y, u):
-        """Truth rows ``(height m, velocity m/s, finger force N, coil voltage V)``, shape (4,)."""
-        return self.model.outputs(y, self._u(u))[:len(TRUTH_NAMES)]
-
-    def mode(self, y, u) -> int:
-        return self.model.mode(y, self._u(u))
 
     def static_deflection(self, volts: float, with_finger: bool = True) -> float:
         """Closed-form rise of the pin under a DC voltage, m (from its rest height).

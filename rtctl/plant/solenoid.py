@@ -49,7 +49,7 @@ import numpy as np
 
 from rtctl.errors import ModelError
 from rtctl.plant._checks import positive
-from rtctl.plant.contact import SkinContact, add_skin
+from rtctl.plant.contact import PinReference, SkinContact, add_skin
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.hybrid import TRUTH_NAMES, HybridBuilder, HybridGroup, Lin, unilateral
 
@@ -64,7 +64,7 @@ def _pos(name, v, zero_ok=False):
     return positive("solenoid", name, v, zero_ok)
 
 
-class SolenoidPin:
+class SolenoidPin(PinReference):
     """Continuous switched-linear model of one solenoid pin with end stops and the finger.
 
     Parameters
@@ -168,20 +168,6 @@ class SolenoidPin:
     def time_constant(self) -> float:
         """Electrical time constant L / R, s."""
         return self.L / self.R
-
-    def _u(self, u):
-        return np.array([float(u), self.preload])
-
-    def rhs(self, t, y, u):
-        """State derivative for drive voltage ``u`` (V) and the pin's preload, shape (n,)."""
-        return self.model.rhs(t, y, self._u(u))
-
-    def outputs(self, y, u):
-        """Truth rows ``(height m, velocity m/s, finger force N, coil voltage V)``, shape (4,)."""
-        return self.model.outputs(y, self._u(u))[:len(TRUTH_NAMES)]
-
-    def mode(self, y, u) -> int:
-        return self.model.mode(y, self._u(u))
 
     def static_height(self, volts: float) -> float:
         """Rest height under a constant coil voltage, m."""
