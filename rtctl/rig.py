@@ -200,7 +200,8 @@ class Rig:
             groups.append((sim, slice(ch0, ch0 + n), slice(row0, row0 + rows)))
             self.sensed_names += [f"{g.name}.{i}.{lab}" for i in range(n) for lab in sim.sensed_labels]
             self.probes += [(f"{g.name}.{pn}", unit, sim, r) for r, (pn, unit) in enumerate(sim.probe_names)]
-            self._group_loads[g.name] = (sim.capacitance, getattr(sim, "resistance", 0.0))
+            if sim.capacitance:  # a piezo: its model is built already (a PVDF plate takes ~1 s)
+                self._group_loads[g.name] = (sim.capacitance, 0.0)
             ch0, row0 = ch0 + n, row0 + rows
         self.truth_names = TRUTH_NAMES
         self.sensed = np.zeros((row0, self.block))

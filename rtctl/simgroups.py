@@ -42,7 +42,6 @@ def _sma(scene, g, gi, fs, block):
     group = SmaGroup(sma_taxel(g), fs, g.grid[0] * g.grid[1], max_block=max(block, 1), mech_fs=p.mech_fs,
                      crossbar=p.crossbar, rows=g.grid[0], slot=p.slot)
     group.f_ext[:] = p.push
-    group.resistance = group.plant.resistance
     return group
 
 
@@ -119,10 +118,8 @@ def _solenoid(scene, g, gi, fs, block):
                       stroke=p.stroke, stop_stiffness=p.stop_stiffness,
                       stop_damping_ratio=p.stop_damping_ratio, finger=finger,
                       preload=p.preload if finger is not None else 0.0)
-    group = SolenoidGroup(pin, fs, g.grid[0] * g.grid[1], max_block=max(block, 1), substeps=p.substeps,
-                          levels=p.levels)
-    group.resistance = p.resistance
-    return group
+    return SolenoidGroup(pin, fs, g.grid[0] * g.grid[1], max_block=max(block, 1), substeps=p.substeps,
+                         levels=p.levels)
 
 
 #: actuator type -> builder(scene, group, group index, fs, block)

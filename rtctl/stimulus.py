@@ -15,7 +15,7 @@ Only :meth:`RenderStage.apply` runs between blocks; all image-wide work happens 
 
 from __future__ import annotations
 
-import math
+import os
 
 import numpy as np
 
@@ -76,10 +76,8 @@ class RenderStage:
                              "frequency | beat")
         if not st.image:
             raise SceneError(f"{scene.source}: stimulus.image is empty: name the image file to render")
-        path = st.image
-        if not _is_abs(path) and scene.source and not scene.source.startswith("<"):
-            import os
-
+        path = st.image  # relative to the scene file when it is there
+        if not os.path.isabs(path) and scene.source and not scene.source.startswith("<"):
             cand = os.path.join(os.path.dirname(scene.source), path)
             path = cand if os.path.exists(cand) else path
         image = load_image(path)
@@ -118,7 +116,6 @@ class RenderStage:
             from .dsp import PulseTrain
 
             self.pulses = PulseTrain(n_channels, self.fs, 0.0, 0.5, 0.0, 0.0)
-        self._n = n
 
     def _build_frames(self, scene, st, grid, n_channels):
         from .dsp import PulseTrain
@@ -174,16 +171,3 @@ class RenderStage:
 
     def _n_pins(self) -> int:
         return self.channels.stop - self.channels.start
-
-
-def _is_abs(path: str) -> bool:
-    import os
-
-    return os.path.isabs(path)
-
-
-def frames_period_s(stage) -> float:
-    """How long one pass of the frames (or the path) lasts, s (for choosing a run duration)."""
-    if stage._frames is not None:
-        return stage._frames.shape[0] * stage._frame_blocks * stage.block / stage.fs
-    return len(stage.path) / stage.path.rate if math.isfinite(stage.path.rate) else 0.0

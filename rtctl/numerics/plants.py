@@ -3,6 +3,8 @@ each plant's group kernel at several substeps against Radau on the same drive st
 
 from __future__ import annotations
 
+import numpy as np
+
 from rtctl.numerics.problems import group_problem, register
 
 
@@ -43,18 +45,14 @@ class _Single:
     """One driven channel of a MIMO group (the others held at 0 V), as a one-channel group."""
 
     def __init__(self, group, channel):
-        import numpy as np
-
         self.g, self.c = group, channel
         self.n_channels = 1
         self.n_sensed = 0
-        self._np = np
 
     def reset(self):
         self.g.reset()
 
     def process(self, drive, sensed, truth):
-        np = self._np
         n = drive.shape[1]  # (sensed is not passed on: this view reports truth only)
         d = np.zeros((self.g.n_channels, n))
         d[self.c] = drive[0]
