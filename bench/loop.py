@@ -1,6 +1,7 @@
 """Real-time factor of the whole block step: synthesis + simulated plant + limiter.
 
-For 1, 16, 48 and 128 bimorph channels (the demo scene's beam: 4 modes, 3-branch finger,
+With the self-sensing observer off and on (``control.observe``: lock-in of drive and segment
+currents, observer matrices, tip waveform), for 1, 16, 48 and 128 bimorph channels (the demo scene's beam: 4 modes, 3-branch finger,
 amplifier, 2-segment current sense; one tone per channel) at blocks of 16, 32, 64 and 256 samples
 at 48 kHz, times ``Rig.advance`` (read, ``@njit`` step, write: everything the loop does per block
 except the trace) and, in the same process, a plain numpy implementation of the same step
@@ -32,7 +33,7 @@ CHANNELS = (1, 16, 48, 128)
 BLOCKS = (16, 32, 64, 256)
 
 
-def scene_for(n_channels: int, block: int):
+def scene_for(n_channels: int, block: int, observe: bool = False):
     from rtctl import scene
 
     rng = np.random.default_rng(n_channels)
@@ -42,7 +43,7 @@ def scene_for(n_channels: int, block: int):
     assert n_channels % rows == 0
     return scene.load("line-bimorph-5", [
         f"actuator.lateral.grid=[{rows}, {n_channels // rows}]", f"timing.block={block}", f"stimulus.tones=[{tones}]",
-        "timing.duration=3600",
+        "timing.duration=3600", f"control.observe={'true' if observe else 'false'}",
     ])
 
 
@@ -145,21 +146,29 @@ def main(argv=None) -> int:
     results = []
     for c, b in configs:
         rig = build(scene_for(c, b))
-        rtf, p99 = time_rig(rig, a.seconds)
+        obs_rig = build(scene_for(c, b, observe=True))
+        # interleaved, so both see the same machine load; mean RTF, worst p99
+        pairs = [(time_rig(rig, a.seconds / 2), time_rig(obs_rig, a.seconds / 2)) for _ in range(2)]
+        rtf, o_rtf = (float(np.mean([p[i][0] for p in pairs])) for i in (0, 1))
+        p99, o_p99 = (max(p[i][1] for p in pairs) for i in (0, 1))
         np_rtf = time_numpy(rig, min(a.seconds, 0.3))
         results.append({"channels": c, "block": b, "realtime_factor": rtf, "block_time_us_p99": p99,
+                        "observer_realtime_factor": o_rtf, "observer_block_time_us_p99": o_p99,
                         "block_period_us": 1e6 * b / FS, "numpy_realtime_factor": np_rtf,
                         "speedup_vs_numpy": rtf / np_rtf})
         if not a.json:
-            print(f"  {c:4d} ch  block {b:4d}: x{rtf:7.1f} (numpy x{np_rtf:6.2f})", file=sys.stderr)
+            print(f"  {c:4d} ch  block {b:4d}: x{rtf:7.1f}, observer on x{o_rtf:7.1f} (numpy x{np_rtf:6.2f})",
+                  file=sys.stderr)
     report = {"fs": FS, "results": results, **compile_times(),
               "states_per_channel": build(scene_for(1, 32)).device.groups[0][0].n_states}
     print(json.dumps(report, indent=1))
     if not a.json:
         print()
-        print(f"{'channels':>8} {'block':>6} {'RTF':>8} {'p99 us':>8} {'period us':>10} {'numpy RTF':>10} {'speed-up':>9}")
+        print(f"{'channels':>8} {'block':>6} {'RTF':>8} {'p99 us':>8} {'observer on':>12} {'p99 us':>8} "
+              f"{'period us':>10} {'numpy RTF':>10} {'speed-up':>9}")
         for r in results:
             print(f"{r['channels']:8d} {r['block']:6d} {r['realtime_factor']:8.1f} {r['block_time_us_p99']:8.1f} "
+                  f"{r['observer_realtime_factor']:12.1f} {r['observer_block_time_us_p99']:8.1f} "
                   f"{r['block_period_us']:10.1f} {r['numpy_realtime_factor']:10.2f} {r['speedup_vs_numpy']:9.1f}")
         print(f"compile (empty cache) {report['compile_s']:.1f} s; build with warm cache {report['cached_build_s']:.2f} s")
     return 0

@@ -101,7 +101,118 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     period = block / fs
     k = 0
     run_blocks = n_blocks
+    dev = rig.device
+    if getattr(dev, "paced", False):
+        realtime = True  # hardware: the device's clock is the clock
     t_start = time.perf_counter()
+    if getattr(dev, "callback", False):
+        run_blocks, status_seen, interrupted = _run_callback(rig, writer, n_blocks, times, faults, bar)
+        wall = time.perf_counter() - t_start
+        if writer is not None:
+            writer.close()
+        dev.close()
+        misses = int(dev.stats().get("late_blocks", 0))
+    else:
+        run_blocks, status_seen, interrupted, misses, wall = _run_polled(
+            rig, writer, n_blocks, times, faults, bar, realtime, t_start)
+    bt = times[:run_blocks] if run_blocks else np.zeros(1)
+    summary = {
+        "scene": scene.scene.name,
+        "fs": fs,
+        "block": block,
+        "backend": scene.io.backend,
+        "duration_s": run_blocks * period,
+        "realtime_factor": (run_blocks * period / wall) if wall > 0 else math.inf,
+        "block_time_us": {
+            "p50": float(np.percentile(bt, 50)),
+            "p99": float(np.percentile(bt, 99)),
+            "p999": float(np.percentile(bt, 99.9)),
+            "max": float(bt.max()),
+        },
+        "deadline_misses": misses,
+        "faults": faults,
+        "warnings": [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
+        "build_s": build_s,
+        "interrupted": interrupted,
+        "channels": [],
+    }
+    if dev is not None and hasattr(dev, "stats"):
+        summary["io"] = dev.stats()
+    if out is not None:
+        from .report import channel_rows
+
+        reader = TraceReader(out / "trace")
+        summary["channels"] = channel_rows(rig, reader, run_blocks)
+        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        if plot and run_blocks:
+            from .report import plot as make_plot
+
+            make_plot(summary, reader, out / "plot.png", run_blocks)
+    return RunResult(summary, interrupted, out)
+
+
+def _fault_message(rig, k, status, period) -> str:
+    what = safety.describe(status & safety.FAULTS)
+    if status & safety.DEVICE_LOST:
+        err = rig.device.stats().get("error") if hasattr(rig.device, "stats") else None
+        if err:
+            what = [w if "device lost" not in w else f"I/O device lost: {err}" for w in what]
+    return f"at {k * period:.4f} s: " + "; ".join(what) + "; outputs faded to 0 V"
+
+
+def _run_callback(rig, writer, n_blocks, times, faults, bar):
+    """The device's thread runs the block step; this thread writes the trace from its snapshot
+    ring and schedules parameter changes (they land one or two blocks after their block, as the
+    device runs ahead). Returns ``(blocks run, status seen, interrupted)``."""
+    dev = rig.device
+    period = rig.block / rig.fs
+    st = {"run": n_blocks, "seen": 0, "stopping": False}
+    rig.apply_schedule(0)
+
+    def on_block(k, slot):
+        snaps = dev.snaps
+        status = int(snaps.status[slot])
+        if writer is not None:
+            rig.record(writer.next(), status, float(snaps.compute_us[slot]), snaps, slot)
+        if st["stopping"]:
+            return True
+        times[k] = snaps.compute_us[slot]
+        st["seen"] |= status
+        if status & safety.FAULTS:
+            faults.append(_fault_message(rig, k + 1, status, period))
+            st["run"], st["stopping"] = k + 1, True
+            return True
+        if k + 1 >= n_blocks:
+            st["stopping"] = True
+            return True
+        rig.apply_schedule(k + 1)
+        bar.update(k + 1)
+        return False
+
+    interrupted = False
+    try:
+        status = dev.run(rig, n_blocks, on_block)
+    except KeyboardInterrupt:
+        interrupted = True
+        status = 0
+    finally:
+        bar.close()
+    if status & safety.FAULTS and not faults:
+        done = min(dev.snaps.done, n_blocks)
+        faults.append(_fault_message(rig, done, status, period))
+        st["run"] = done
+    if interrupted:
+        st["run"] = min(dev.snaps.done, n_blocks)
+    st["seen"] |= status
+    return st["run"], st["seen"], interrupted
+
+
+def _run_polled(rig, writer, n_blocks, times, faults, bar, realtime, t_start):
+    """The engine's thread runs each block: read, step, write, trace. Returns ``(blocks run,
+    status seen, interrupted, deadline misses, wall seconds)``."""
+    block, fs = rig.block, rig.fs
+    period = block / fs
+    status_seen, misses, interrupted, k, run_blocks = 0, 0, False, 0, n_blocks
     try:
         while k < n_blocks:
             rig.apply_schedule(k)
@@ -122,8 +233,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
                 rig.record(writer.next(), status, times[k])
             k += 1
             if status & safety.FAULTS:
-                faults.append(f"at {k * period:.4f} s: " + "; ".join(safety.describe(status & safety.FAULTS))
-                              + "; outputs faded to 0 V")
+                faults.append(_fault_message(rig, k, status, period))
                 run_blocks = k
                 break
             bar.update(k)
@@ -144,34 +254,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
                 break
         if writer is not None:
             writer.close()
-    bt = times[:run_blocks] if run_blocks else np.zeros(1)
-    summary = {
-        "scene": scene.scene.name,
-        "fs": fs,
-        "block": block,
-        "duration_s": run_blocks * period,
-        "realtime_factor": (run_blocks * period / wall) if wall > 0 else math.inf,
-        "block_time_us": {
-            "p50": float(np.percentile(bt, 50)),
-            "p99": float(np.percentile(bt, 99)),
-            "p999": float(np.percentile(bt, 99.9)),
-            "max": float(bt.max()),
-        },
-        "deadline_misses": misses,
-        "faults": faults,
-        "warnings": [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
-        "build_s": build_s,
-        "interrupted": interrupted,
-        "channels": [],
-    }
-    if out is not None:
-        from .report import channel_rows
+        if rig.device is not None and hasattr(rig.device, "close"):
+            rig.device.close()
+    return run_blocks, status_seen, interrupted, misses, wall
 
-        reader = TraceReader(out / "trace")
-        summary["channels"] = channel_rows(rig, reader, run_blocks)
-        (out / "summary.json").write_text(json.dumps(summary, indent=1))
-        if plot and run_blocks:
-            from .report import plot as make_plot
-
-            make_plot(summary, reader, out / "plot.png", run_blocks)
-    return RunResult(summary, interrupted, out)

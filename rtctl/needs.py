@@ -27,7 +27,7 @@ COMPONENTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "render.braille": ("Braille text to pin frames", ("rtctl.render",)),
     "io.sim": ("simulated rig behind the block I/O contract", ("rtctl.io.sim",)),
     "io.audio": ("audio interface", ("rtctl.io.audio", "sounddevice")),
-    "io.daq": ("DAQ", ("rtctl.io.daq", "nidaqmx")),
+    "io.daq": ("DAQ (National Instruments, nidaqmx)", ("rtctl.io.daq", "nidaqmx")),
     "io.serial": ("serial pin controller", ("rtctl.io.serial", "serial")),
     "io.replay": ("replay of a recorded trace", ("rtctl.io.replay",)),
 }
@@ -35,8 +35,9 @@ COMPONENTS: dict[str, tuple[str, tuple[str, ...]]] = {
 #: components that exist in this version of rtctl; the others are refused with a clear message.
 AVAILABLE = frozenset({
     "safety.limiter", "dsp.oscillator", "dsp.pulse", "dsp.lockin",
-    "plant.bimorph", "plant.finger", "io.sim", "render", "render.braille",
+    "plant.bimorph", "plant.finger", "io.sim", "render", "render.braille", "dsp.lockin",
     "plant.sma", "plant.pvdf", "plant.em", "plant.dot", "plant.solenoid",
+    "selfsense", "io.audio", "io.serial", "io.daq",
 })
 
 
@@ -87,6 +88,9 @@ def needs(scene) -> Needs:
         need["selfsense"] = "control.mode = 'closed'"
         need["dsp.lockin"] = "control.mode = 'closed'"
         need["control"] = "control.mode = 'closed'"
+    elif scene.control.observe:
+        need["selfsense"] = "control.observe = true"
+        need["dsp.lockin"] = "control.observe = true (lock-in of drive and segment currents)"
     backend = scene.io.backend
     need[f"io.{backend}"] = f"io.backend = {backend!r}"
     if backend == "sim":

@@ -69,6 +69,7 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
     n = n_run_blocks * block
     t = np.arange(n) / fs
     has_tip = "tip_um" in reader.units
+    n_b = n // block if block else 0
     rows = []
     for ch in range(rig.n_channels):
         drive = reader.signal("drive", ch)[:n]
@@ -114,8 +115,28 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             if main.shape == "sine":
                 st = settle_time(tip, t, freqs, min(tn.start for tn in tones), amp)
                 row["settle_ms"] = None if st is None else 1e3 * st
+        _estimate(row, reader, ch, n_b, block / fs, freqs, main)
         rows.append(row)
     return rows
+
+
+def _estimate(row, reader, ch, n_blocks, period, freqs, main) -> None:
+    """The observer's amplitude (median of its per-block estimate over the analysis window)
+    into ``row``, with its error against the truth where a simulation knows it and, on
+    hardware, the error against the target from the estimate."""
+    if not n_blocks or "estimated_tip_um" not in reader.units:
+        return
+    est = reader.signal("estimated_um", ch)[:n_blocks]
+    m = max(1, int(round(analysis_window(n_blocks * period, freqs) / period)))
+    seg = est[-m:]
+    seg = seg[np.isfinite(seg)]
+    if not seg.size:
+        return
+    row["estimated_um"] = float(np.median(seg))
+    if row["true_um"]:
+        row["estimate_error_pct"] = 100.0 * (row["estimated_um"] / row["true_um"] - 1.0)
+    elif main is not None and main.target_m and math.isfinite(main.target_m):
+        row["error_pct"] = 100.0 * (row["estimated_um"] * 1e-6 - main.target_m) / main.target_m
 
 
 def _um(x: float) -> float | None:

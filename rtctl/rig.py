@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import perception
+from ._numba import kernel
 from .errors import SceneError
 from .needs import needs, unavailable_message
 
@@ -168,11 +169,19 @@ class Rig:
         self.sensed_names: list[str] = []  # row names of ``sensed``, for trace readers
         self._group_loads = {}
         self.probes = []
+        self.truth_names = ()
+        self.estimated = np.full((self.n_channels, self.block), np.nan)  # observer tip wave, m
+        self.estimated_amp = np.full(self.n_channels, np.nan)  # observer tip amplitude, m
         if scene.io.backend == "sim":
             self._build_sim(scene)
+        else:
+            self._build_backend(scene)
         loads = [self._drive_load(scene, g) for g in groups]
         self._build_tones(scene)
         self._build_limiter(limits, loads)
+        self._observers = []
+        if scene.control.observe or scene.control.mode == "closed":
+            self._build_observers(scene)
         self._compile()
 
     # --- construction -----------------------------------------------------------------------
@@ -207,6 +216,77 @@ class Rig:
         self.sensed = np.zeros((row0, self.block))
         self.device = SimDevice(groups, self.out, self.sensed, len(TRUTH_NAMES))
         self.truth = self.device.truth
+
+    def _sensed_layout(self, scene):
+        """Sensed rows on hardware: each bimorph channel's segment currents, channel-major (the
+        rows the simulated bimorph writes); other actuator types sense nothing."""
+        rows, owner, ch0 = [], [], 0
+        for g in scene.actuator:
+            n = g.grid[0] * g.grid[1]
+            if g.type == "bimorph":
+                n_seg = len(g.beam.segments)
+                rows += [f"{g.name}.{i}.seg{j}" for i in range(n) for j in range(n_seg)]
+                owner += [ch0 + i for i in range(n) for _ in range(n_seg)]
+            ch0 += n
+        return rows, owner
+
+    def _build_backend(self, scene):
+        """A hardware backend (``rtctl.io.<backend>.open_backend``), opened now so a missing
+        device is reported before anything runs."""
+        import importlib
+
+        from .io.base import Layout
+
+        rows, owner = self._sensed_layout(scene)
+        self.sensed_names = rows
+        self.sensed = np.zeros((len(rows), self.block))
+        types = [scene.group(g).type for g in self.channel_groups]
+        self.layout = Layout(self.fs, self.block, tuple(self.channel_names), tuple(self.channel_groups),
+                             tuple(types), tuple(rows), tuple(owner))
+        mod = importlib.import_module(f"rtctl.io.{scene.io.backend}")
+        self.device = mod.open_backend(scene, self.layout, self.out, self.sensed)
+        self.truth = getattr(self.device, "truth", None)
+        self.probes = [(f"io.{pn}", unit, self.device, r)
+                       for r, (pn, unit) in enumerate(getattr(self.device, "probe_names", ()))]
+
+    def _build_observers(self, scene):
+        """One self-sensing observer per bimorph group, on the scene's tone frequencies."""
+        from .selfsense.frontend import FrontEnd
+        from .selfsense.rt import Observer
+        from .selfsense.tmm import TMMBeam
+
+        if scene.stimulus.kind != "tones":
+            raise SceneError(f"{scene.source}: control.observe needs stimulus.kind = 'tones' (the observer "
+                             f"is designed on the tone frequencies; rendered stimuli change them), got "
+                             f"{scene.stimulus.kind!r}")
+        mats = _materials(scene)
+        ch0, row0 = 0, 0
+        latency = int(getattr(self.device, "latency_blocks", 1))
+        for g in scene.actuator:
+            n = g.grid[0] * g.grid[1]
+            if g.type != "bimorph":
+                ch0 += n
+                continue
+            n_seg = len(g.beam.segments)
+            per = [[f for tn in self.tones if tn.channel == c for f in tn.freqs] for c in range(ch0, ch0 + n)]
+            width = max(1, max(len(p) for p in per))
+            freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
+            fe = beam_model(g, mats, scene)
+            front = FrontEnd(self.fs, g.amplifier.bandwidth, g.sense.aa_cutoff, g.sense.aa_order)
+            obs = Observer(TMMBeam.from_fe(fe), freqs, self.fs, self.block, front,
+                           image_load=finger_load(scene, g))
+            if np.any(obs.cond > 1e4):
+                bad = sorted({float(f) for f, c in zip(freqs.ravel(), obs.cond.ravel()) if c > 1e4})
+                raise SceneError(f"{scene.source}: the self-sensing observer of {g.name!r} is ill-conditioned "
+                                 f"at {', '.join(f'{f:g}' for f in bad)} Hz (condition number above 1e4)")
+            obs.wave = self.estimated[ch0:ch0 + n]
+            delay = np.zeros((max(1, latency), n, self.block))
+            head = np.zeros(1, dtype=np.int64)
+            rows = self.sensed[row0:row0 + n * n_seg]
+            self._observers.append((obs, (*obs.args, delay, head, self.out[ch0:ch0 + n], rows,
+                                          self.estimated_amp[ch0:ch0 + n])))
+            ch0 += n
+            row0 += n * n_seg
 
     def _build_tones(self, scene):
         tones, chans, freqs = [], [], []
@@ -303,6 +383,19 @@ class Rig:
             self._step_args = (*self.limiter.args, self.out)
         saved = [a.copy() for a in self._step_args]
         self._step(*self._step_args)
+        if self._observers:
+            from ._observe import observe_stage
+
+            self._observe = observe_stage
+            for obs, args in self._observers:
+                observe_stage(*args)
+                obs.reset()
+                args[-5][...] = 0.0  # the delay ring
+                args[-4][0] = 0
+            self.estimated[...] = np.nan
+            for obs, args in self._observers:
+                obs.wave[...] = 0.0
+                args[-1][...] = 0.0
         if self.device is not None:
             self.device.compile()
         for a, s in zip(self._step_args, saved):
@@ -319,15 +412,29 @@ class Rig:
         if self.render is not None:
             self.render.apply(k)
 
+    def step(self) -> int:
+        """The block step without I/O: synthesis, limiter, then the observers (each a nogil
+        numba call over preallocated arrays; a callback backend calls this from its thread)."""
+        status = self._step(*self._step_args)
+        for _, args in self._observers:
+            status |= self._observe(*args)
+        return status
+
     def advance(self) -> int:
-        """One block: read the sensed currents, synthesize and limit, write; status bits."""
+        """One block: read the sensed currents, the block step, write; status bits."""
         status = 0
         if self.device is not None:
             status |= self.device.read()
-        status |= self._step(*self._step_args)
+        status |= self.step()
         if self.device is not None:
             status |= self.device.write()
         return status
+
+    def snapshot(self, snaps, slot: int) -> None:
+        """Copy this block's outputs, readings, estimates and temperatures into ``snaps`` (a
+        :class:`rtctl.io.base.Snapshots`) at ``slot``, for the trace (no allocation)."""
+        _snapshot(self.out, self.sensed, self.estimated, self.estimated_amp, self.limiter.temperature,
+                  snaps.out, snaps.sensed, snaps.estimated, snaps.estimated_amp, snaps.temperature, slot)
 
     # --- trace ----------------------------------------------------------------------------------
 
@@ -340,12 +447,29 @@ class Rig:
             sig[name] = (unit, 1)
         sig["target_um"] = ("um", self.n_channels, 0)
         sig["estimated_um"] = ("um", self.n_channels, 0)
+        if self._observers:  # the rebuilt tip waveform, one io latency behind the drive
+            sig["estimated_tip_um"] = ("um", self.n_channels)
         sig["temperature"] = ("degC", self.n_channels, 0)
         return sig
 
-    def record(self, rec, status: int, compute_us: float) -> None:
+    def record(self, rec, status: int, compute_us: float, snaps=None, slot: int = 0) -> None:
+        """Fill trace record ``rec`` from the rig's buffers, or from ``snaps[slot]`` (a callback
+        backend's ring) when given."""
         rec["status"] = status
         rec["compute_us"] = compute_us
+        if snaps is not None:
+            rec["drive"][...] = snaps.out[slot]
+            rec["sensed"][...] = snaps.sensed[slot]
+            rec["target_um"][...] = self.targets_um
+            rec["estimated_um"][...] = snaps.estimated_amp[slot]
+            rec["estimated_um"] *= 1e6
+            if self._observers:
+                rec["estimated_tip_um"][...] = snaps.estimated[slot]
+                rec["estimated_tip_um"] *= 1e6
+            rec["temperature"][...] = snaps.temperature[slot]
+            for name, _, sim, r in self.probes:
+                rec[name][0] = sim.probe[r, :self.block]
+            return
         rec["drive"][...] = self.out
         rec["sensed"][...] = self.sensed
         if self.truth is not None:
@@ -357,8 +481,21 @@ class Rig:
         for name, _, sim, r in self.probes:
             rec[name][0] = sim.probe[r, :self.block]
         rec["target_um"][...] = self.targets_um
-        rec["estimated_um"][...] = np.nan  # no observer yet (self-sensing issue)
+        rec["estimated_um"][...] = self.estimated_amp
+        rec["estimated_um"] *= 1e6
+        if self._observers:
+            rec["estimated_tip_um"][...] = self.estimated
+            rec["estimated_tip_um"] *= 1e6
         rec["temperature"][...] = self.limiter.temperature
+
+
+@kernel
+def _snapshot(out, sensed, estimated, amp, temperature, s_out, s_sensed, s_est, s_amp, s_temp, slot):
+    s_out[slot, :, :] = out
+    s_sensed[slot, :, :] = sensed
+    s_est[slot, :, :] = estimated
+    s_amp[slot, :] = amp
+    s_temp[slot, :] = temperature
 
 
 def build(scene) -> Rig:

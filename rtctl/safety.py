@@ -39,9 +39,12 @@ OVERTEMP = 8
 SENSOR_SATURATED = 16
 PLANT_NONFINITE = 32
 DEADLINE_MISSED = 64
+DEVICE_LOST = 128
+IO_XRUN = 256
+ESTIMATE_NONFINITE = 512
 
 #: Status bits that end a run (outputs fade to zero first).
-FAULTS = NONFINITE | OVERTEMP | PLANT_NONFINITE
+FAULTS = NONFINITE | OVERTEMP | PLANT_NONFINITE | DEVICE_LOST
 
 STATUS_NAMES = {
     LIMIT_VOLTAGE: "voltage limited",
@@ -51,6 +54,9 @@ STATUS_NAMES = {
     SENSOR_SATURATED: "current sensor saturated",
     PLANT_NONFINITE: "simulated plant state became non-finite",
     DEADLINE_MISSED: "block deadline missed",
+    DEVICE_LOST: "I/O device lost (unplugged, stalled or not answering)",
+    IO_XRUN: "audio under/overflow (xrun)",
+    ESTIMATE_NONFINITE: "self-sensing estimate non-finite (a sensed reading was NaN/Inf)",
 }
 
 # limiter state rows

@@ -25,12 +25,14 @@ def run_cli(capsys, *args):
         (["run", "line-bimorph-5", "--set", "actuator.lateral.max_voltage=-1"], ["max_voltage", "-1.0", "(0, 2000] V"]),
         (["model", "no-such-scene"], ["no-such-scene", "no such scene"]),
         (["run", "line-bimorph-5", "--set", "control.mode=closed"], ["control.mode = 'closed'", "not have yet", "open"]),
-        (["run", "line-bimorph-5", "--set", "io.backend=audio"], ["io.backend = 'audio'", "not have yet"]),
+        (["run", "line-bimorph-5", "--set", "io.backend=replay"], ["io.backend = 'replay'", "not have yet"]),
+        (["run", "line-bimorph-5", "--set", "io.backend=serial"], ["io.port", "rtctl emulate serial"]),
         (["run", "line-bimorph-5", "--set", "stimulus.kind=image", "--set", "stimulus.method=roi",
           "--set", "stimulus.image=/no/such.png"], ["/no/such.png", "no such file"]),
         (["check", "line-bimorph-5", "--set", "nonsense"], ["path.to.key=VALUE"]),
     ],
-    ids=["misspelled", "out-of-range", "missing-file", "closed-loop", "audio", "image", "bad-set"],
+    ids=["misspelled", "out-of-range", "missing-file", "closed-loop", "replay", "serial-no-port", "image",
+         "bad-set"],
 )
 def test_bad_input_is_one_line_and_status_2(capsys, args, words):
     code, out, err = run_cli(capsys, *args)

@@ -1,0 +1,53 @@
+"""The self-sensing stage of the block step: one observed bimorph group per call.
+
+Imported only by scenes that observe (``control.observe`` or closed-loop control), so an
+open-loop scene never compiles it. The observer must pair each block of sensed currents with the
+drive that produced them: the backend hands back currents ``L`` blocks after the drive went out
+(one on the ``sim`` backend, the measured round trip on an audio interface), so the drive waits
+in a ring of ``L`` blocks.
+"""
+
+import numpy as np
+
+from ._numba import kernel
+from .safety import ESTIMATE_NONFINITE
+from .selfsense.rt import observer_process
+
+
+@kernel
+def observe_stage(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan, i_acc, i_ring,
+                  u_out, i_out, H, scale, est, wave, delay, head, out, sensed, amp):
+    """Observe one block and push this block's drive into the delay ring.
+
+    Parameters
+    ----------
+    u_ref ... wave
+        ``Observer.args`` (see :func:`rtctl.selfsense.rt.observer_process`).
+    delay : ndarray, shape (L, n_ch, block)
+        The drive of the last ``L`` blocks; ``delay[head[0]]`` is the oldest, the one the
+        currents in ``sensed`` answer.
+    head : ndarray int64, shape (1,)
+    out : ndarray, shape (n_ch, block)
+        This block's drive (after the limiter).
+    sensed : ndarray, shape (n_ch * n_seg, block)
+        The currents the backend delivered at the start of this block, A.
+    amp : ndarray, shape (n_ch,)
+        Written: estimated tip amplitude per channel, m: the sum over its tones (the envelope
+        peak of a beat pair).
+
+    Returns
+    -------
+    int
+        0 or ``ESTIMATE_NONFINITE``.
+    """
+    k = head[0]
+    s = observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan, i_acc, i_ring,
+                         u_out, i_out, H, scale, est, wave, delay[k], sensed)
+    delay[k, :, :] = out
+    head[0] = (k + 1) % delay.shape[0]
+    for c in range(est.shape[0]):
+        a = 0.0
+        for j in range(est.shape[1]):
+            a += np.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
+        amp[c] = a
+    return ESTIMATE_NONFINITE if s != 0 else 0

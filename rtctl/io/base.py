@@ -1,0 +1,99 @@
+"""The block-I/O contract every backend follows, and what the rig tells a backend about itself.
+
+The rig owns two preallocated buffers: ``out`` (n_channels, block), drive volts after the final
+limiter, and ``sensed`` (n_sensed, block), sensed currents in amperes. A backend moves them to and
+from a device. Two kinds exist:
+
+**Polled** backends (``sim``, ``serial``, ``daq``): the engine calls, once per block,
+``read()`` (fill ``sensed`` with the newest complete block), the rig's block step, then
+``write()`` (send ``out``). Both return status bits (:mod:`rtctl.safety`) and never block longer
+than a block period; a lost device is reported as ``DEVICE_LOST``, not raised. ``paced`` says the
+device's clock (or the wall clock) sets the pace, so the engine sleeps to real time.
+
+**Callback** backends (``audio``): the device's thread calls the block step itself; the engine's
+thread only schedules parameter changes and writes the trace from snapshots (see
+:class:`Snapshots`). They have ``callback = True`` and a ``run(rig, n_blocks, on_block)`` method.
+
+Every backend has ``close()``: outputs to zero where the hardware allows, device released;
+idempotent and never raises. ``stats()`` returns a JSON-able dict for ``summary["io"]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Layout:
+    """What a backend needs to know about the rig it serves.
+
+    Attributes
+    ----------
+    fs : float
+        Sample rate, Hz.
+    block : int
+        Samples per block.
+    channel_names : tuple of str
+        ``GROUP.INDEX`` per drive row of ``out``.
+    channel_groups : tuple of str
+        Actuator group name per drive row.
+    channel_types : tuple of str
+        Actuator type per drive row (``bimorph``, ``dot``, ``sma``, ...).
+    sensed_names : tuple of str
+        ``GROUP.INDEX.LABEL`` per row of ``sensed`` (e.g. ``lateral.0.seg1``), channel-major.
+    sensed_channel : tuple of int
+        Drive row each sensed row belongs to.
+    """
+
+    fs: float
+    block: int
+    channel_names: tuple
+    channel_groups: tuple
+    channel_types: tuple
+    sensed_names: tuple
+    sensed_channel: tuple
+
+    @property
+    def n_channels(self) -> int:
+        return len(self.channel_names)
+
+    @property
+    def n_sensed(self) -> int:
+        return len(self.sensed_names)
+
+
+class Snapshots:
+    """A ring of per-block copies a callback backend fills and the engine's thread reads.
+
+    The device thread writes slot ``k % n`` after block ``k`` and then publishes ``done = k + 1``
+    (one int store: no lock); the engine reads slots below ``done`` that it has not read yet. A
+    ring of ``n`` slots lets the engine fall ``n - 1`` blocks behind before ``overrun`` counts
+    lost trace blocks.
+
+    Attributes
+    ----------
+    out : ndarray (n, n_channels, block)
+    sensed : ndarray (n, n_sensed, block)
+    estimated : ndarray (n, n_channels, block)
+        Observer tip waveform, m (NaN rows where nothing is observed).
+    estimated_amp : ndarray (n, n_channels)
+        Observer tip amplitude, m (NaN where nothing is observed).
+    temperature : ndarray (n, n_channels)
+    status : ndarray int64 (n,)
+    compute_us : ndarray (n,)
+        Time the callback spent in the block step.
+    """
+
+    def __init__(self, n: int, n_channels: int, n_sensed: int, block: int):
+        self.n = int(n)
+        self.out = np.zeros((n, n_channels, block))
+        self.sensed = np.zeros((n, n_sensed, block))
+        self.estimated = np.full((n, n_channels, block), np.nan)
+        self.estimated_amp = np.full((n, n_channels), np.nan)
+        self.temperature = np.zeros((n, n_channels))
+        self.status = np.zeros(n, dtype=np.int64)
+        self.compute_us = np.zeros(n)
+        self.done = 0      # blocks completed by the device thread
+        self.overrun = 0   # blocks the engine had not read before their slot was reused

@@ -1,0 +1,66 @@
+"""The self-sensing observer inside the rig's block step (``control.observe``), judged against the
+simulated finite-element plant's true tip motion, which the observer never sees."""
+
+import numpy as np
+import pytest
+
+from rtctl import scene
+from rtctl.errors import SceneError
+from rtctl.loop import run
+from rtctl.needs import needs
+from rtctl.trace import TraceReader
+
+
+@pytest.fixture(scope="module")
+def observed(tmp_path_factory):
+    out = tmp_path_factory.mktemp("obs")
+    s = scene.load("line-bimorph-5", ["control.observe=true", "stimulus.tones.4.beat=10.0",
+                                      "stimulus.tones.4.voltage=20.0"])
+    return run(s, out_dir=out, plot=False), out
+
+
+def test_observe_pulls_in_selfsense_only_when_asked():
+    assert "selfsense" in needs(scene.load("line-bimorph-5", ["control.observe=true"])).needed
+    assert "selfsense" in needs(scene.load("line-bimorph-5")).left_out
+
+
+def test_estimated_amplitude_matches_the_plant(observed):
+    """Single tones 2-120 Hz and a 245+255 Hz beat pair under the scene's finger: the observer's
+    amplitude (median over the analysis window) within 1 % of the least-squares fit of the true
+    tip motion (issue 4's target at 60 dB; measured 0.35-0.44 %)."""
+    res, _ = observed
+    rows = res.summary["channels"]
+    assert len(rows) == 5
+    for r in rows:
+        assert r["estimated_um"] is not None and r["true_um"] > 0
+        assert abs(r["estimated_um"] / r["true_um"] - 1) < 0.01, r
+        assert abs(r["estimate_error_pct"]) < 1.0
+
+
+def test_rebuilt_waveform_follows_the_tip_one_block_late(observed):
+    """``estimated_tip_um`` rebuilds the tip from the per-tone phasors; on the sim backend the
+    currents come back one block after the drive, so the waveform lags the truth by one block."""
+    _, out = observed
+    tr = TraceReader(out / "trace")
+    block = tr.block
+    tip = tr.signal("tip_um")
+    est = tr.signal("estimated_tip_um")
+    n = tip.shape[1]
+    m = 24000  # the last 0.5 s
+    x = np.arange(m, dtype=float)
+    drift = np.column_stack([np.ones(m), x, x**2])
+    for ch in range(5):
+        truth = tip[ch, n - m - block:n - block]
+        err = est[ch, n - m:] - truth
+        # the truth carries the finger's slow relaxation (an offset and drift), which a sum of
+        # tones leaves out: remove a quadratic before comparing (measured residual 0.08-0.43 %)
+        err -= drift @ np.linalg.lstsq(drift, err, rcond=None)[0]
+        assert np.std(err) < 0.01 * np.std(truth), ch
+
+
+def test_observer_refuses_rendered_stimuli():
+    with pytest.raises(SceneError, match="control.observe needs stimulus.kind = 'tones'"):
+        from rtctl.rig import build
+
+        build(scene.load("line-bimorph-5", ["control.observe=true", "stimulus.kind=shape",
+                                             "stimulus.shape=cross"]))
