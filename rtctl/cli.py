@@ -83,26 +83,34 @@ def _parser() -> argparse.ArgumentParser:
         ("render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main"),
         ("bench", "benchmarks: `bench numerics` (work-precision, stability), `bench render`",
          None),
+        ("emulate", "run a scene's simulated display as a device: `emulate audio SCENE` (a JACK client) "
+         "or `emulate serial SCENE` (a pin controller behind a pseudo-terminal)", None),
     ):
         t = sub.add_parser(name, help=help_, description=help_, add_help=False)
         t.add_argument("rest", nargs=argparse.REMAINDER)
         t.set_defaults(func=_delegate, target=target, tool=name)
+    d = sub.add_parser("devices", help="audio, serial and DAQ devices this machine has",
+                       description="audio, serial and DAQ devices this machine has")
+    d.add_argument("--json", action="store_true", help="print one JSON object")
+    d.set_defaults(func=_devices)
     return p
 
 
 BENCHES = {"numerics": "rtctl.numerics.cli:main", "render": "rtctl.render.bench:main_bench"}
+EMULATORS = {"audio": "rtctl.io.emulate_audio:main", "serial": "rtctl.io.emulate_serial:main"}
 
 
 def _delegate(args) -> int:
     import importlib
 
     rest, target = list(args.rest), args.target
-    if target is None:  # bench: the first word picks the benchmark
-        if not rest or rest[0] not in BENCHES:
-            print(f"usage: rtctl bench {{{','.join(BENCHES)}}} [options]  (loop speed: make bench)",
-                  file=sys.stderr)
+    if target is None:  # bench / emulate: the first word picks the tool
+        table, hint = ((BENCHES, "  (loop speed: make bench)") if args.tool == "bench"
+                       else (EMULATORS, " SCENE [--set KEY=VALUE ...]"))
+        if not rest or rest[0] not in table:
+            print(f"usage: rtctl {args.tool} {{{','.join(table)}}} [options]{hint}", file=sys.stderr)
             return 2
-        target = BENCHES[rest.pop(0)]
+        target = table[rest.pop(0)]
     module, func = target.split(":")
     return int(getattr(importlib.import_module(module), func)(rest) or 0)
 
@@ -207,5 +215,17 @@ def _run(args) -> int:
     return 1 if result.summary["faults"] else 0
 
 
+def _devices(args) -> int:
+    from .io.devices import format_table, list_devices
+
+    found = list_devices()
+    if args.json:
+        _print_json(found)
+    else:
+        print(format_table(found))
+    return 0
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
+
