@@ -364,6 +364,8 @@ class Rig:
             loss_tangent=[x.loss_tangent for x in lim], thermal_resistance=[x.thermal_resistance for x in lim],
             thermal_tau=[x.thermal_tau for x in lim],
         )
+        if self.scene.io.backend == "serial":
+            self.limiter.commands_only()
 
     def _compile(self):
         """Compile (or load from numba's cache) every kernel now, not in the first block."""

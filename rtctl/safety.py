@@ -229,6 +229,12 @@ class Limiter:
         """A shutdown fade has run its length and every output is at 0 V."""
         return bool(self.fade[1] > 0 and self.fade[0] >= self.fade[1] and not np.any(self.state[_V]))
 
+    def commands_only(self) -> None:
+        """The outputs are pin commands to a controller whose firmware pulses the coils (Dot: a
+        3 ms pulse per change) and guards them (SMA: its thermal cutoff), not coil voltages: no
+        Joule heating from a held level. The voltage bound stays."""
+        self.params[_JOULE] = 0.0
+
     @property
     def temperature(self) -> np.ndarray:
         return self.state[_T]

@@ -26,7 +26,7 @@ def run_cli(capsys, *args):
         (["model", "no-such-scene"], ["no-such-scene", "no such scene"]),
         (["run", "line-bimorph-5", "--set", "control.mode=closed"], ["control.mode = 'closed'", "not have yet", "open"]),
         (["run", "line-bimorph-5", "--set", "io.backend=replay"], ["io.backend = 'replay'", "not have yet"]),
-        (["run", "line-bimorph-5", "--set", "io.backend=serial"], ["io.port", "rtctl emulate serial"]),
+        (["run", "dot-4x4", "--set", "io.backend=serial"], ["io.port", "rtctl emulate serial"]),
         (["run", "line-bimorph-5", "--set", "stimulus.kind=image", "--set", "stimulus.method=roi",
           "--set", "stimulus.image=/no/such.png"], ["/no/such.png", "no such file"]),
         (["check", "line-bimorph-5", "--set", "nonsense"], ["path.to.key=VALUE"]),

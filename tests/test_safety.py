@@ -154,3 +154,16 @@ def test_coil_channel_bounds_steady_current_and_heats_by_joule_loss():
 def test_a_channel_with_neither_capacitance_nor_resistance_is_refused():
     with pytest.raises(ValueError, match="resistance"):
         make(1, capacitance=0.0)
+
+
+def test_pin_commands_keep_the_voltage_bound_but_do_not_heat():
+    # Behind a serial pin controller a held level is a command, the firmware pulses the coil:
+    # same voltage bound as the coil (|V| <= I_max R), no Joule heating from holding it.
+    R, imax = 8.0, 0.5
+    lim = make(1, capacitance=0.0, resistance=R, current=imax, max_voltage=12.0, slew=1e9,
+               thermal_resistance=20.0, thermal_tau=1e-3)
+    lim.commands_only()
+    x = np.full((1, 48000), 12.0)
+    assert lim.process(x) & LIMIT_VOLTAGE
+    assert x.max() == pytest.approx(imax * R)
+    assert lim.temperature[0] == pytest.approx(25.0, abs=1e-12)
