@@ -6,7 +6,7 @@ import importlib
 import pytest
 
 MODULES = ["rtctl.selfsense.tmm", "rtctl.selfsense.frontend", "rtctl.selfsense.rt",
-           "rtctl.selfsense.facts", "rtctl.selfsense.observer"]
+           "rtctl.selfsense.facts", "rtctl.selfsense.observer", "rtctl.selfsense.sweep"]
 
 
 @pytest.mark.parametrize("name", MODULES)

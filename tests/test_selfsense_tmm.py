@@ -125,3 +125,44 @@ def test_eq1_point_matrices_finger_and_elastic_support():
         y = T @ y + t
     out = load_point_matrix(K) @ y
     assert abs(out[2]) < 1e-9 * abs(sol["y"][0][2]) and abs(out[3]) < 1e-9 * abs(sol["y"][0][3])
+
+
+def cantilever_omegas(b, n):
+    """Clamped-free natural frequencies, rad/s: REFERENCES roots, then (n - 1/2) pi (the error
+    of the asymptote falls like exp(-beta L): 2e-7 at n = 5)."""
+    roots = list(ROOTS) + [(k - 0.5) * math.pi for k in range(len(ROOTS) + 1, n + 1)]
+    return np.array(roots[:n]) ** 2 / b.length**2 * math.sqrt(b.lam.EI / b.lam.rhoA)
+
+
+def test_modal_participations_of_a_cantilever():
+    """A mass-normalized clamped-free mode has phi(L)^2 = 4 / (rhoA L) (every mode)."""
+    b = bimorph(zeta=0.01)
+    wn, A, _ = b._modal()
+    np.testing.assert_allclose(wn, cantilever_omegas(b, wn.size), rtol=1e-6)
+    np.testing.assert_allclose(A[:, b.n_seg] ** 2 * b.lam.rhoA * b.length / 4.0, 1.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("f", [10.0, 250.0, 1000.0, 3000.0, 20000.0])
+def test_port_receptance_has_modal_damping(f):
+    """Tip force -> tip deflection of a modally damped cantilever, closed form as a modal sum
+    over 2000 modes: sum 4 / (rhoA L (w_n^2 - w^2 + 2 j zeta w_n w)). Measured: <= 1.3e-5, the
+    damping-made imaginary part (0.02-22 % of it) <= 6e-5. Reciprocity: G is symmetric."""
+    b = bimorph(zeta=0.01)
+    w = 2 * math.pi * f
+    wn = cantilever_omegas(b, 2000)
+    want = np.sum(4.0 / (b.lam.rhoA * b.length * (wn**2 - w * w + 2j * 0.01 * wn * w)))
+    G = b.port_receptance(w)
+    n = b.n_seg
+    assert abs(G[n, n] / want - 1) < 1e-4
+    assert abs(G[n, n].imag / want.imag - 1) < 3e-4
+    np.testing.assert_allclose(G, G.T, rtol=0, atol=1e-12 * np.abs(G).max())
+
+
+def test_port_receptance_undamped_equals_field_solve():
+    """Without damping the receptance is the banded field solve itself (tip force column)."""
+    b = bimorph(zeta=0.0)
+    om = 2 * math.pi * 700.0
+    G = b.port_receptance(om)
+    y = b.solve(om, volts=[0, 0], tip_force=1.0)["y"]
+    assert G[2, 2] == pytest.approx(y[-1][0], rel=1e-12)
+    assert G[3, 2] == pytest.approx(y[-1][1], rel=1e-12)

@@ -4,7 +4,11 @@ For every bimorph group of the scene: the TMM twin's natural frequencies, the ti
 admittance per volt for the finger loads of :func:`~rtctl.selfsense.sweep.finger_loads` (plot:
 ``DIR/selfsense_<group>.png``), and the accuracy sweep of the two-segment observer on the
 simulated FE plant at the scene's sample rate and front end, with and without +-5 % model
-mismatch (``DIR/selfsense_<group>.json``).
+mismatch (``DIR/selfsense_<group>.json``). The simulated truth keeps every mode up to 5 fs
+(:func:`~rtctl.selfsense.sweep.truth_modes`, 8 for the bundled beam), not the loop plant's
+``beam.modes`` (4): the DAC staircase's images reach the currents through modes up to ~4 fs, and
+the 4-mode plant misses them (docs/selfsense.md, Sec. 5). ``--truth-modes 4`` scores against
+the loop plant instead.
 """
 
 from __future__ import annotations
@@ -31,16 +35,19 @@ def _parser():
     p.add_argument("--beat", type=float, default=10.0, help="beat of the pairs, Hz (0: tones only)")
     p.add_argument("--snr", type=float, default=60.0, help="current-sense SNR, dB")
     p.add_argument("--no-mismatch", action="store_true", help="skip the +-5 %% mismatch cases")
+    p.add_argument("--truth-modes", type=int, default=None, metavar="N",
+                   help="modes of the simulated truth plant (default: all up to 5 fs)")
     return p
 
 
 def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.0), beat=10.0,
-        snr_db=60.0, mismatch=True) -> dict:
+        snr_db=60.0, mismatch=True, truth_modes=None) -> dict:
     """Everything ``rtctl selfsense`` computes, as a dict (see the module docstring)."""
     from rtctl import rig, scene as scene_mod
     from rtctl.selfsense.facts import tmm_facts
     from rtctl.selfsense.plots import admittance_figure
     from rtctl.selfsense.sweep import finger_loads, run_case, sweep
+    from rtctl.selfsense.sweep import truth_modes as converged_modes
     from rtctl.selfsense.tmm import TMMBeam
 
     sc = scene_mod.load(scene_name, list(overrides))
@@ -56,7 +63,7 @@ def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.
         finger = rig.finger_load(sc, g)
         kw = dict(fs=fs, block=int(sc.timing.block), amplifier_hz=g.amplifier.bandwidth,
                   aa_cutoff_hz=g.sense.aa_cutoff, aa_order=g.sense.aa_order, shunt=g.sense.shunt,
-                  n_modes=g.beam.modes)
+                  n_modes=truth_modes or converged_modes(fe, fs, int(g.beam.modes)))
         loads = finger_loads(finger)
         beam = TMMBeam.from_fe(fe)
         fgrid = np.geomspace(5.0, 2000.0, 200)
@@ -76,7 +83,7 @@ def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.
         sw = sweep(fe, finger, freqs=tuple(freqs), volts=10.0, snr_db=snr_db, mismatches=mm,
                    beat_hz=beat, **kw)
         facts = tmm_facts(fe, finger)
-        entry = {**facts, "plot": str(png), **sw}
+        entry = {**facts, "plot": str(png), "loop_plant_modes": int(g.beam.modes), **sw}
         (outdir / f"selfsense_{g.name}.json").write_text(json.dumps(entry, indent=1))
         result["groups"][g.name] = entry
     if not result["groups"]:
@@ -93,7 +100,10 @@ def main(argv=None) -> int:
         print(f"rtctl selfsense: error: --freqs must be numbers in Hz, got {args.freqs!r}", file=sys.stderr)
         return 2
     try:
-        res = run(args.scene, args.overrides, args.out, freqs, args.beat, args.snr, not args.no_mismatch)
+        if args.truth_modes is not None and args.truth_modes < 1:
+            raise RtctlError(f"--truth-modes must be >= 1, got {args.truth_modes}")
+        res = run(args.scene, args.overrides, args.out, freqs, args.beat, args.snr, not args.no_mismatch,
+                  args.truth_modes)
     except RtctlError as e:
         print(f"rtctl selfsense: error: {e}", file=sys.stderr)
         return 2
@@ -103,6 +113,9 @@ def main(argv=None) -> int:
     for name, g in res["groups"].items():
         print(f"{name}: TMM modes {', '.join(f'{f:.0f}' for f in g['tmm_natural_frequencies_hz'])} Hz, "
               f"loaded {', '.join(f'{f:.0f}' for f in g['tmm_loaded_natural_frequencies_hz'])} Hz; plot {g['plot']}")
+        modes = sorted({c["truth_modes"] for c in g["cases"]})
+        print(f"truth plant: {', '.join(map(str, modes))} modes "
+              f"(the loop plant keeps {g['loop_plant_modes']})")
         print(f"{'f Hz':>7} {'beat':>5} {'load':>5} {'mismatch':>18} {'amp %':>7} {'ph deg':>7} {'F %':>7} {'cond':>6}")
         for c in g["cases"]:
             mm = ",".join(f"{k}{v:+.0%}" for k, v in c["mismatch"].items()) or "-"

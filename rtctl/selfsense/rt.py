@@ -7,7 +7,7 @@ import numpy as np
 from rtctl.dsp.lockin import LockIn
 from rtctl.errors import ModelError
 from rtctl.selfsense import _kernels
-from rtctl.selfsense.observer import EST_NAMES, N_EST, MAX_COND, design
+from rtctl.selfsense.observer import EST_NAMES, MAX_COND, N_EST, design
 
 __all__ = ["Observer", "observer_process", "tone_window"]
 
@@ -73,7 +73,9 @@ class Observer:
     image_load : MaxwellLoad, optional
         Load assumed for the aliased images.
     max_cond : float
-        Refuse ill-conditioned frequencies.
+        Refuse ill-conditioned frequencies (also for four segments, whose tip estimate is less
+        fragile than the support stiffness that :func:`~rtctl.selfsense.observer.design` guards
+        with ``MAX_COND_SUPPORT``).
 
     Attributes
     ----------

@@ -12,11 +12,19 @@ with ``M = EI* w'' + m_p V`` and ``Q = M'``. The piezo acts as an induced curvat
     w' = psi,  psi' = (M - m_p V) / EI*,  M' = Q,  Q' = rhoA w^2 w
     charge = Cp V - m_p (psi_end - psi_start),   current I = j w charge
 
-``EI* = EI (1 + j w c(w))`` (Kelvin-Voigt) with ``c = 2 zeta / w_n``, ``w_n`` the natural
-frequency of the unloaded beam nearest to ``w`` (in log): every resonance gets the damping ratio
-``zeta``, as the finite-element plant's modal damping gives every mode; between resonances
-the other modes are quasi-static and the difference ``2 zeta w (1/w_n - 1/w_m)`` times their
-share is small (< 1e-3 of the current below the third mode, tested).
+Damping. The field (:meth:`TMMBeam.solve`, :meth:`TMMBeam.segment_matrix`) needs a local law:
+``EI* = EI (1 + j w c(w))`` (Kelvin-Voigt) with ``c = 2 zeta / w_n``, ``w_n`` the unloaded
+beam's natural frequency nearest to ``w`` (in log; ``c = 2 zeta / w`` above the tabulated
+modes), so every resonance of the unloaded beam gets the damping ratio ``zeta``. The
+finite-element plant damps each mode by its own ``2 zeta w_n`` instead, which is no local law:
+between resonances, and at the resonances of a finger-loaded beam (a mix of unloaded modes),
+the two differ by ``zeta``-sized shares (2-5 % of the admittance at the 2nd loaded mode; 1-12 %
+of a tip force read by self-sensing). Port quantities (:meth:`TMMBeam.port_receptance`,
+:meth:`TMMBeam.response`, the observers of a known support) therefore carry the modal damping
+exactly: the Kelvin-Voigt receptance is stiffness-proportionally damped, so its modal terms are
+``a a^T / (w_n^2 (1 + j w c) - w^2)``; they are swapped for ``a a^T / (w_n^2 - w^2 + 2 j zeta
+w_n w)`` on the ``N_MODAL`` tabulated modes (participations ``a`` from the residues of the
+undamped receptance) and quasi-statically on the rest (their residual flexibility).
 
 Sign conventions (as :mod:`rtctl.plant.beam`): ``w``, a tip force and ``psi`` point "up"; an
 external tip force ``P`` gives ``Q(L) = -P``, a finger of dynamic stiffness ``K_f`` gives
@@ -52,6 +60,8 @@ __all__ = ["Laminate", "laminate_of", "Support", "TMMBeam", "krylov", "piece_mat
            "seed_matrix", "load_point_matrix", "support_point_matrix"]
 
 _TERMS = 12  # series terms: |lam x^4| <= 1 leaves < 1/(48)! after 12
+#: Modes tabulated for the damping: exact modal damping on these, the rest quasi-static.
+N_MODAL = 6
 
 
 @dataclass(frozen=True)
@@ -287,7 +297,8 @@ class TMMBeam:
     segments : sequence of float
         Electrode split, fractions of the length from the root (sum 1).
     zeta : float
-        Damping ratio given to the first mode of the beam on ``support`` (Kelvin-Voigt).
+        Modal damping ratio of every mode of the unloaded beam on ``support`` (as the FE
+        plant's ``damping``); see the module docstring for where it is exact.
     support : Support, optional
         Default clamped.
 
@@ -321,15 +332,20 @@ class TMMBeam:
         self.c_kv = 0.0
         self._wn = np.array([1.0])
         if self.zeta > 0.0:
-            self._wn = 2.0 * math.pi * self.natural_frequencies(6)
+            self._wn = 2.0 * math.pi * self.natural_frequencies(N_MODAL)
             self.c_kv = 2.0 * self.zeta / self._wn[0]
 
     def _c(self, omega):
-        """Kelvin-Voigt coefficient at ``omega``: ``2 zeta / w_n`` of the mode nearest in log
-        frequency, so each resonance of the unloaded beam has the damping ratio ``zeta``."""
+        """Kelvin-Voigt coefficient at ``omega``: ``2 zeta / w_n`` of the tabulated mode nearest
+        in log frequency, and ``2 zeta / omega`` above the last one (a constant loss factor
+        ``2 zeta``), so every resonance of the unloaded beam has the damping ratio ``zeta``, also
+        the high ones the aliased images of the drive hit (docs/selfsense.md, Sec. 3)."""
         if self.c_kv == 0.0:
             return 0.0
-        i = int(np.argmin(np.abs(np.log(self._wn / max(abs(omega), 1e-30)))))
+        w = abs(omega)
+        if w >= self._wn[-1]:
+            return 2.0 * self.zeta / w
+        i = int(np.argmin(np.abs(np.log(self._wn / max(w, 1e-30)))))
         return 2.0 * self.zeta / self._wn[i]
 
     @classmethod
@@ -354,25 +370,24 @@ class TMMBeam:
                    l.thickness * (1.0 + mm.get("thickness", 0.0))) for l in s.layers]
         sup = fe.support
         return cls(laminate_of(s.width, layers, s.connection), s.length, s.segments,
-                   s.damping, Support(sup.k, sup.k_rot))
+                   s.damping, Support(sup.k, sup.k_rot, sup.mass, sup.inertia))
 
     def with_support(self, support: Support) -> TMMBeam:
-        """Same beam on another support (damping coefficient kept)."""
-        other = object.__new__(TMMBeam)
-        other.__dict__.update(self.__dict__)
-        other.support = support
-        return other
+        """Same beam on another support (its modes, hence its damping, tabulated anew)."""
+        return TMMBeam(self.lam, self.length, np.diff(self.bounds) / self.length, self.zeta,
+                       support)
 
-    def support_stiffness(self, omega):
+    def support_stiffness(self, omega, c=None):
         """Dynamic root stiffnesses at ``omega``: springs damped like the beam (the FE plant's
-        modal damping acts on the whole stiffness, support springs included), minus inertia."""
-        damp = 1.0 + 1j * omega * self._c(omega)
+        modal damping acts on the whole stiffness, support springs included), minus inertia.
+        ``c``: Kelvin-Voigt coefficient (default :meth:`_c`)."""
+        damp = 1.0 + 1j * omega * (self._c(omega) if c is None else c)
         sup = self.support
         return sup.k * damp - sup.mass * omega**2, sup.k_rot * damp - sup.inertia * omega**2
 
     # ------------------------------------------------------------------ matrices
-    def _ei_lam(self, omega):
-        EI = self.lam.EI * (1.0 + 1j * omega * self._c(omega))
+    def _ei_lam(self, omega, c=None):
+        EI = self.lam.EI * (1.0 + 1j * omega * (self._c(omega) if c is None else c))
         return EI, self.lam.rhoA * omega**2 / EI
 
     def _pieces(self, lam, a, b):
@@ -414,6 +429,10 @@ class TMMBeam:
     def solve(self, omega, load=0.0, volts=None, tip_force=0.0, tip_moment=0.0):
         """Steady response at one angular frequency: banded solve over all piece ends.
 
+        The field inside the beam needs a local constitutive law, so this solve uses the
+        Kelvin-Voigt damping of :meth:`_c`; :meth:`response` and :meth:`port_receptance` give the
+        port quantities with the modal damping of the finite-element plant.
+
         Parameters
         ----------
         omega : float
@@ -432,14 +451,28 @@ class TMMBeam:
             ``current`` (segment current phasors, A, shape (n_seg,)), ``seg_nodes``.
         """
         V = np.ones(self.n_seg, dtype=complex) if volts is None else np.asarray(volts, dtype=complex)
-        EI, lam = self._ei_lam(omega)
+        x, seg_nodes, y = self._solve_many(omega, load, V[None, :], [tip_force], [tip_moment])
+        psi = y[0, seg_nodes, 1]
+        charge = self.cp * V - self.lam.m_p * np.diff(psi)
+        return {"x": x, "y": y[0], "current": 1j * omega * charge, "seg_nodes": seg_nodes}
+
+    def _solve_many(self, omega, load, volts, tip_force, tip_moment, c=None):
+        """Banded solve for several right-hand sides (one factorization).
+
+        ``volts`` shape (n_cases, n_seg), ``tip_force`` and ``tip_moment`` length n_cases; ``c``
+        the Kelvin-Voigt coefficient (default :meth:`_c`). Returns node positions, segment node
+        indices and the states, shape (n_cases, n_nodes, 4).
+        """
+        volts = np.atleast_2d(np.asarray(volts, dtype=complex))
+        n_cases = volts.shape[0]
+        EI, lam = self._ei_lam(omega, c)
         pieces, seg_nodes, x = [], [0], [0.0]
+        e_m = np.array([0, 0, 1.0, 0])
         for j in range(self.n_seg):
             n, h = self._pieces(lam, self.bounds[j], self.bounds[j + 1])
             P = piece_matrix(lam, EI, h)
-            e_m = np.array([0, 0, 1.0, 0])
-            t = self.lam.m_p * (e_m - P @ e_m)
-            pieces += [(P, t * V[j])] * n
+            t = self.lam.m_p * (e_m - P @ e_m)        # per volt on this segment
+            pieces += [(P, t, j)] * n
             x += list(self.bounds[j] + h * np.arange(1, n + 1))
             seg_nodes.append(seg_nodes[-1] + n)
         N = len(pieces)
@@ -447,8 +480,8 @@ class TMMBeam:
         D = np.array([L, 1.0, EIr / L, EIr / L**2])  # y = D y~: dimensionless unknowns
         n_unk = 4 * (N + 1)
         A = np.zeros((n_unk, n_unk), dtype=complex)
-        rhs = np.zeros(n_unk, dtype=complex)
-        ks, kr = self.support_stiffness(omega)
+        rhs = np.zeros((n_unk, n_cases), dtype=complex)
+        ks, kr = self.support_stiffness(omega, c)
         # Root rows (the ground side is free: only w, psi remain, as R_m of Eq. 1).
         if math.isinf(self.support.k):
             A[0, 0] = 1.0
@@ -458,18 +491,18 @@ class TMMBeam:
             A[1, 1] = 1.0
         else:   # M(0) - k_rot psi(0) = 0
             A[1, 2], A[1, 1] = 1.0, -kr * D[1] / (EIr / L)
-        for i, (P, t) in enumerate(pieces):
+        for i, (P, t, j) in enumerate(pieces):
             r = 2 + 4 * i
             A[r:r + 4, 4 * i:4 * i + 4] = -(P * D[None, :]) / D[:, None]
             A[r:r + 4, 4 * i + 4:4 * i + 8] = np.eye(4)
-            rhs[r:r + 4] = t / D
+            rhs[r:r + 4] = (t / D)[:, None] * volts[None, :, j]
         r = 2 + 4 * N
-        c = 4 * N
+        c0 = 4 * N
         # Tip: M(L) = tip_moment; Q(L) - K w(L) = -tip_force.
-        A[r, c + 2] = 1.0
-        rhs[r] = tip_moment / D[2]
-        A[r + 1, c + 3], A[r + 1, c] = 1.0, -load * D[0] / D[3]
-        rhs[r + 1] = -tip_force / D[3]
+        A[r, c0 + 2] = 1.0
+        rhs[r] = np.asarray(tip_moment, dtype=complex) / D[2]
+        A[r + 1, c0 + 3], A[r + 1, c0] = 1.0, -load * D[0] / D[3]
+        rhs[r + 1] = -np.asarray(tip_force, dtype=complex) / D[3]
         # Block-bidiagonal: 5 bands each side; LAPACK gbsv pivots partially (stable).
         ab = np.zeros((11, n_unk), dtype=complex)
         for d in range(-5, 6):
@@ -478,14 +511,98 @@ class TMMBeam:
                 ab[5 + d, :n_unk - d] = diag
             else:
                 ab[5 + d, -d:] = diag
-        y = scipy.linalg.solve_banded((5, 5), ab, rhs, check_finite=False).reshape(N + 1, 4) * D[None, :]
-        psi = y[seg_nodes, 1]
-        charge = self.cp * V - self.lam.m_p * np.diff(psi)
-        return {"x": np.array(x), "y": y, "current": 1j * omega * charge,
-                "seg_nodes": np.array(seg_nodes)}
+        y = scipy.linalg.solve_banded((5, 5), ab, rhs, check_finite=False)
+        y = y.T.reshape(n_cases, N + 1, 4) * D[None, None, :]
+        return np.array(x), np.array(seg_nodes), y
+
+    def _ports_kv(self, omega, c):
+        """Port receptance with Kelvin-Voigt coefficient ``c`` and the root state per input.
+
+        Returns ``G`` (n_seg + 2, n_seg + 2) as :meth:`port_receptance` and ``Y0`` (4, n_seg + 2),
+        the root state ``[w, psi, M, Q]`` per unit input.
+        """
+        n = self.n_seg
+        volts = np.zeros((n + 2, n), dtype=complex)
+        volts[np.arange(n), np.arange(n)] = 1.0
+        force = np.zeros(n + 2)
+        moment = np.zeros(n + 2)
+        force[n], moment[n + 1] = 1.0, 1.0
+        _, seg_nodes, y = self._solve_many(omega, 0.0, volts, force, moment, c)
+        G = np.empty((n + 2, n + 2), dtype=complex)
+        G[:n] = (-self.lam.m_p * np.diff(y[:, seg_nodes, 1], axis=1)).T
+        G[n] = y[:, -1, 0]
+        G[n + 1] = y[:, -1, 1]
+        return G, y[:, 0, :].T
+
+    def _modal(self):
+        """Tabulated modes: ``w_n`` (rad/s), port participations ``a_n`` (N_MODAL, n_seg + 2) of
+        the mass-normalized shapes, and the residual flexibility ``R`` of the other modes.
+
+        ``a_n a_n^T`` is the residue of the undamped receptance at ``w_n^2``, read from two
+        solves at ``w_n^2 (1 -+ 1e-4)``: their difference is ``-2 a_n a_n^T / h`` up to
+        ``O(h)`` from the smooth rest (relative error ~1e-8). The tip force is the input (a free
+        tip moves in every mode). ``R = G(0) - sum a_n a_n^T / w_n^2``.
+        """
+        cache = self.__dict__.get("_modal_cache")
+        if cache is not None:
+            return cache
+        n = self.n_seg
+        wn = self._wn
+        A = np.empty((wn.size, n + 2))
+        for i, w in enumerate(wn):
+            h = 1e-4 * w * w
+            g = [self._ports_kv(math.sqrt(w * w + s * h), 0.0)[0][:, n] for s in (1.0, -1.0)]
+            aphi = (-h / 2.0) * (g[0] - g[1]).real         # a_n * phi_n(L)
+            if not aphi[n] > 0.0:
+                raise ModelError(f"mode at {w / (2 * math.pi):.4g} Hz has no tip motion: cannot "
+                                 "normalize it for the modal damping")
+            A[i] = aphi / math.sqrt(aphi[n])
+        G0 = self._ports_kv(0.0, 0.0)[0].real
+        R = G0 - (A.T / wn**2) @ A
+        cache = (wn.copy(), A, (R + R.T) / 2.0)
+        self.__dict__["_modal_cache"] = cache
+        return cache
+
+    def port_receptance(self, omega, root=False):
+        """Receptance among the beam's ports, unloaded, with the plant's modal damping.
+
+        Ports (inputs = columns, outputs = rows, reciprocal so ``G`` is symmetric): segment
+        ``j``'s voltage (V) and its motional charge (C: charge minus ``Cp_j V_j``); the tip
+        force (N, up) and the tip deflection (m); the tip moment (N m, ccw) and the tip slope
+        (rad). Modal damping gives mode ``n`` the term ``a_n a_n^T / (w_n^2 - w^2 + 2 j zeta
+        w_n w)``; it is not a local law, so it is added to the Kelvin-Voigt solve (a
+        stiffness-proportional damping, whose modal terms are ``a_n a_n^T / (w_n^2 (1 + j w c)
+        - w^2)``) as the difference of the two for the ``N_MODAL`` tabulated modes, and for the
+        rest quasi-statically, ``R j w c / (1 + j w c)`` (valid well below the first
+        untabulated mode, ~140 kHz for the bundled beam).
+
+        Parameters
+        ----------
+        omega : float
+            rad/s (>= 0).
+        root : bool
+            Also return the root state ``[w, psi, M, Q]`` per unit input (Kelvin-Voigt),
+            shape (4, n_seg + 2).
+
+        Returns
+        -------
+        ndarray, shape (n_seg + 2, n_seg + 2), complex
+        """
+        c = self._c(omega)
+        G, Y0 = self._ports_kv(omega, c)
+        if self.c_kv > 0.0:
+            wn, A, R = self._modal()
+            w2 = omega * omega
+            d = (1.0 / (wn**2 - w2 + 2j * self.zeta * wn * omega)
+                 - 1.0 / (wn**2 * (1.0 + 1j * omega * c) - w2))
+            G = G + (A.T * d) @ A + R * (1j * omega * c / (1.0 + 1j * omega * c))
+        return (G, Y0) if root else G
 
     def response(self, freqs_hz, load=None, volts=None):
-        """Tip response and segment currents per volt over frequency.
+        """Tip response and segment currents per volt over frequency (modal damping).
+
+        The unloaded port receptance (:meth:`port_receptance`) closed by the tip load:
+        ``w_L = g_w / (1 + K G_PP)`` with ``g`` the response to the voltages.
 
         Parameters
         ----------
@@ -505,15 +622,20 @@ class TMMBeam:
             (A/V, shape (n, n_seg)); ``admittance`` (A/V, total current, shape (n,)).
         """
         f = np.atleast_1d(np.asarray(freqs_hz, dtype=float))
+        n = self.n_seg
+        V = np.ones(n, dtype=complex) if volts is None else np.asarray(volts, dtype=complex)
         out = {k: np.empty(f.size, dtype=complex) for k in ("tip", "slope", "moment", "force")}
-        cur = np.empty((f.size, self.n_seg), dtype=complex)
+        cur = np.empty((f.size, n), dtype=complex)
         for i, fi in enumerate(f):
             w = 2.0 * math.pi * fi
             K = _load_stiffness(load, w)
-            sol = self.solve(w, K, volts)
-            yt = sol["y"][-1]
-            out["tip"][i], out["slope"][i], out["moment"][i], out["force"][i] = yt
-            cur[i] = sol["current"]
+            G = self.port_receptance(w)
+            g = G[:, :n] @ V
+            wl = g[n] / (1.0 + K * G[n, n])
+            o = g - G[:, n] * (K * wl)
+            out["tip"][i], out["slope"][i] = wl, o[n + 1]
+            out["moment"][i], out["force"][i] = 0.0, K * wl
+            cur[i] = 1j * w * (self.cp * V + o[:n])
         out["velocity"] = 2j * math.pi * f * out["tip"]
         out["current"] = cur
         out["admittance"] = cur.sum(axis=1)
