@@ -146,6 +146,21 @@ def model_facts(scene) -> dict:
     return out
 
 
+def sensed_layout(scene):
+    """Sensed rows on hardware: each bimorph channel's segment currents, channel-major (the rows
+    the simulated bimorph writes); other actuator types sense nothing. Returns ``(row names,
+    drive channel of each row)``."""
+    rows, owner, ch0 = [], [], 0
+    for g in scene.actuator:
+        n = g.grid[0] * g.grid[1]
+        if g.type == "bimorph":
+            n_seg = len(g.beam.segments)
+            rows += [f"{g.name}.{i}.seg{j}" for i in range(n) for j in range(n_seg)]
+            owner += [ch0 + i for i in range(n) for _ in range(n_seg)]
+        ch0 += n
+    return rows, owner
+
+
 class Rig:
     """What :func:`build` returns. Call :meth:`advance` once per block."""
 
@@ -217,19 +232,6 @@ class Rig:
         self.device = SimDevice(groups, self.out, self.sensed, len(TRUTH_NAMES))
         self.truth = self.device.truth
 
-    def _sensed_layout(self, scene):
-        """Sensed rows on hardware: each bimorph channel's segment currents, channel-major (the
-        rows the simulated bimorph writes); other actuator types sense nothing."""
-        rows, owner, ch0 = [], [], 0
-        for g in scene.actuator:
-            n = g.grid[0] * g.grid[1]
-            if g.type == "bimorph":
-                n_seg = len(g.beam.segments)
-                rows += [f"{g.name}.{i}.seg{j}" for i in range(n) for j in range(n_seg)]
-                owner += [ch0 + i for i in range(n) for _ in range(n_seg)]
-            ch0 += n
-        return rows, owner
-
     def _build_backend(self, scene):
         """A hardware backend (``rtctl.io.<backend>.open_backend``), opened now so a missing
         device is reported before anything runs."""
@@ -237,7 +239,7 @@ class Rig:
 
         from .io.base import Layout
 
-        rows, owner = self._sensed_layout(scene)
+        rows, owner = sensed_layout(scene)
         self.sensed_names = rows
         self.sensed = np.zeros((len(rows), self.block))
         types = [scene.group(g).type for g in self.channel_groups]
@@ -398,10 +400,13 @@ class Rig:
             for obs, args in self._observers:
                 obs.wave[...] = 0.0
                 args[-1][...] = 0.0
+        self._calls = self.kernel_calls()
         if self.device is not None:
             self.device.compile()
         for a, s in zip(self._step_args, saved):
             a[...] = s
+        if hasattr(self.device, "bind"):  # a callback backend: build its callback now, not at run()
+            self.device.bind(self)
 
     # --- per block ----------------------------------------------------------------------------
 
@@ -414,13 +419,23 @@ class Rig:
         if self.render is not None:
             self.render.apply(k)
 
+    def kernel_calls(self) -> list:
+        """The block step as ``[(kernel, args), ...]``: synthesis and limiter, then one observer
+        stage per observed group. A C audio callback calls these kernels itself."""
+        return [(self._step, self._step_args)] + [(self._observe, a) for _, a in self._observers]
+
     def step(self) -> int:
-        """The block step without I/O: synthesis, limiter, then the observers (each a nogil
-        numba call over preallocated arrays; a callback backend calls this from its thread)."""
-        status = self._step(*self._step_args)
-        for _, args in self._observers:
-            status |= self._observe(*args)
+        """The block step without I/O (each call a nogil numba kernel over preallocated arrays;
+        a callback backend calls this from its thread)."""
+        status = 0
+        for fn, args in self._calls:
+            status |= fn(*args)
         return status
+
+    def snapshot_call(self, snaps) -> tuple:
+        """``(kernel, args)`` of :meth:`snapshot` into ``snaps``; the slot is the last argument."""
+        return (_snapshot, (self.out, self.sensed, self.estimated, self.estimated_amp, self.limiter.temperature,
+                            snaps.out, snaps.sensed, snaps.estimated, snaps.estimated_amp, snaps.temperature))
 
     def advance(self) -> int:
         """One block: read the sensed currents, the block step, write; status bits."""
@@ -435,8 +450,8 @@ class Rig:
     def snapshot(self, snaps, slot: int) -> None:
         """Copy this block's outputs, readings, estimates and temperatures into ``snaps`` (a
         :class:`rtctl.io.base.Snapshots`) at ``slot``, for the trace (no allocation)."""
-        _snapshot(self.out, self.sensed, self.estimated, self.estimated_amp, self.limiter.temperature,
-                  snaps.out, snaps.sensed, snaps.estimated, snaps.estimated_amp, snaps.temperature, slot)
+        fn, args = self.snapshot_call(snaps)
+        fn(*args, slot)
 
     # --- trace ----------------------------------------------------------------------------------
 

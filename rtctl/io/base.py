@@ -67,8 +67,9 @@ class Layout:
 class Snapshots:
     """A ring of per-block copies a callback backend fills and the engine's thread reads.
 
-    The device thread writes slot ``k % n`` after block ``k`` and then publishes ``done = k + 1``
-    (one int store: no lock); the engine reads slots below ``done`` that it has not read yet. A
+    The device thread writes slot ``k % n`` after block ``k`` and counts it in its control
+    array (one int store: no lock); the backend's engine-side loop publishes that count as
+    ``done`` and hands the engine every slot below it that it has not read yet. A
     ring of ``n`` slots lets the engine fall ``n - 1`` blocks behind before ``overrun`` counts
     lost trace blocks.
 

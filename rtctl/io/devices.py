@@ -43,7 +43,10 @@ def audio_devices() -> dict:
         sd = import_sounddevice()
     except OSError as e:
         return {"devices": [], "note": f"PortAudio library not found ({e}); install libportaudio2"}
+    from .audio import rescan
+
     with quiet_c_stderr():
+        rescan(sd)  # PortAudio may be shut down (last stream closed) or a server started since
         apis = sd.query_hostapis()
         devs = sd.query_devices()
     out = [{"name": d["name"], "host_api": apis[d["hostapi"]]["name"], "inputs": d["max_input_channels"],

@@ -1,0 +1,439 @@
+"""``rtctl emulate audio SCENE``: the scene's simulated plant as a JACK client, the hardware an
+``audio`` run drives when no hardware is there (hardware-in-the-loop through a real audio server).
+
+The client (``rtctl-emulator``) has one input port per drive channel (named like the channel,
+``lateral.0``; port value x ``io.volts_per_fs`` = volts) and one output port per sensed row
+(``lateral.0.seg1``; amperes / ``io.amps_per_fs``): exactly the sensed rows an audio run has
+(``rtctl.rig.sensed_layout``), matched by name to the simulated groups' rows. Each JACK period it
+converts the drive ports into a preallocated float64 block, advances the simulated groups (the
+``sim`` backend's kernels and their contract, :mod:`rtctl.io.sim`) and writes that block's
+currents to its output ports: no latency of its own, as an analog amplifier and current sense
+have none. The process callback is C (a numba ``cfunc`` handed to ``jack_set_process_callback``,
+no Python and no GIL per period) where it can be built, else Python (``RTCTL_AUDIO_CFUNC=0``).
+
+It waits for an rtctl run's PortAudio client (ports ``rtctl:out_N`` / ``rtctl:in_N``, client
+name matching ``--connect``), connects drive channel ``c`` from ``out_{io.outputs[c]}`` and sensed
+row ``r`` to ``in_{io.inputs[r]}`` (the run's own channel map), disconnects anything else feeding
+those inputs (``system:capture_N``), resets the plant to rest and prints ``ready``. When that
+client goes, it waits for the next one. stdout carries exactly: ``waiting`` (own ports exist),
+then ``ready`` per connected run. SIGTERM or SIGINT ends it with status 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+
+from ..errors import RtctlError
+
+
+def _parser():
+    p = argparse.ArgumentParser(prog="rtctl emulate audio",
+                                description="Run the scene's simulated plant as a JACK client that an audio run "
+                                            "drives (hardware in the loop). Prints 'waiting', then 'ready' per "
+                                            "connected run.")
+    p.add_argument("scene", metavar="SCENE", help="scene file or bundled scene name")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene key (use the run's overrides: io.outputs, io.inputs, scaling)")
+    p.add_argument("--connect", default="rtctl(-[0-9]+)?", metavar="REGEX",
+                   help="JACK client name of the rtctl run to serve (POSIX extended regex; default %(default)s)")
+    p.add_argument("--name", default="rtctl-emulator", help="this client's JACK name (default %(default)s)")
+    p.add_argument("--server", default=None, help="JACK server name (default: $JACK_DEFAULT_SERVER or 'default')")
+    return p
+
+
+class Plant:
+    """The simulated groups of a scene on one JACK period, with their port names and channel map."""
+
+    def __init__(self, scene, fs: float, period: int):
+        from ..plant import TRUTH_NAMES
+        from ..simgroups import build_group
+        from .audio import channel_map
+
+        from ..rig import sensed_layout
+
+        # The rows an audio run senses (its Layout): the emulator publishes exactly those, by name.
+        self.out_names = list(sensed_layout(scene)[0])
+        self.in_names, groups, sim_rows = [], [], []
+        ch0 = row0 = 0
+        for gi, g in enumerate(scene.actuator):
+            n = g.grid[0] * g.grid[1]
+            self.in_names += [f"{g.name}.{i}" for i in range(n)]
+            try:
+                sim = build_group(scene, g, gi, fs, period)
+            except RtctlError as e:
+                print(f"rtctl emulate audio: {e}; its drive channels are read, its sensed rows stay 0",
+                      file=sys.stderr)
+                ch0 += n
+                continue
+            rows = n * sim.n_sensed
+            sim_rows += [f"{g.name}.{i}.{lab}" for i in range(n) for lab in sim.sensed_labels]
+            groups.append((sim, slice(ch0, ch0 + n), slice(row0, row0 + rows)))
+            ch0, row0 = ch0 + n, row0 + rows
+        self.drive = np.zeros((ch0, period))
+        self.sensed = np.zeros((row0, period))
+        self.truth = np.zeros((ch0, len(TRUTH_NAMES), period))
+        self.groups = [g for g, _, _ in groups]
+        # The simulated-group contract (rtctl.io.sim): kernel(*args, drive, sensed, truth) -> bits,
+        # here writing each block's currents straight into ``sensed`` (no latency of its own).
+        self.calls = [(g.kernel, (*g.args, self.drive[ch], self.sensed[sr], self.truth[ch])) for g, ch, sr in groups]
+        for kernel, args in self.calls:  # compile (or load) now, then back to rest
+            kernel(*args)
+        self.reset()
+        missing = [r for r in self.out_names if r not in sim_rows]
+        if missing:
+            print(f"rtctl emulate audio: no simulated signal for sensed rows {', '.join(missing)}: they stay 0",
+                  file=sys.stderr)
+        # sensed row (port) -> row of the simulated groups' block, -1 for none
+        self.row_of = [sim_rows.index(r) if r in sim_rows else -1 for r in self.out_names]
+        self.zeros = np.zeros(period)
+        io = scene.io
+        # The run's map; the device's channel count is the run's business (1024 = the schema bound).
+        self.outputs = channel_map(io.outputs, ch0, 1024, "io.outputs", "drive channels")
+        self.inputs = channel_map(io.inputs, len(self.out_names), 1024, "io.inputs", "sensed rows")
+        self.volts_per_fs = float(io.volts_per_fs)
+        self.fs_per_amp = 1.0 / float(io.amps_per_fs)
+
+
+    def reset(self) -> None:
+        """Every simulated group at rest (a new run starts from zero state, as on ``sim``)."""
+        for g in self.groups:
+            g.reset()
+        self.drive[:] = 0.0
+        self.sensed[:] = 0.0
+        self.truth[:] = 0.0
+
+    def step(self) -> int:
+        """One period through every group (the Python process callback's path)."""
+        status = 0
+        for kernel, args in self.calls:
+            status |= kernel(*args)
+        return status
+
+
+# --- the C process callback: JACK calls it directly, no Python, no GIL ----------------------------
+
+#: Fields of the emulator's int64 control array.
+E_PAUSE, E_PAUSED, E_BLOCKS, E_ODD, E_SATURATED, E_ERRORS = range(6)
+
+_PROCESS = """# generated by rtctl.io.emulate_audio; package stamp {stamp}
+import numpy as np
+from numba import carray, cfunc, types
+
+from rtctl.io._audio_kernels import voidptr_at
+from rtctl.io.emulate_audio import (E_BLOCKS, E_ERRORS, E_ODD, E_PAUSE, E_PAUSED, E_SATURATED,
+    jack_port_get_buffer)
+{imports}
+
+SIG = types.int32(types.uint32, types.voidptr)
+
+
+@cfunc(SIG, nopython=True, cache=True)
+def process(nframes, arg):
+    tab = carray(arg, ({n_tab},), np.int64)
+    ctl = carray(voidptr_at(tab[0]), (6,), np.int64)
+    scale = carray(voidptr_at(tab[1]), (2,), np.float64)
+{arrays}
+    if nframes != {period} or ctl[E_PAUSE] != 0:
+        for r in range({n_out}):
+            buf = carray(jack_port_get_buffer(voidptr_at({ports_out}[r]), nframes), (nframes,), np.float32)
+            for i in range(nframes):
+                buf[i] = 0.0
+        if nframes != {period}:
+            ctl[E_ODD] += 1
+        ctl[E_PAUSED] = ctl[E_PAUSE]
+        return 0
+    ctl[E_PAUSED] = 0
+    for c in range({n_in}):
+        buf = carray(jack_port_get_buffer(voidptr_at({ports_in}[c]), nframes), ({period},), np.float32)
+        for i in range({period}):
+            {drive}[c, i] = buf[i] * scale[0]
+    st = 0
+    try:
+{steps}
+    except Exception:
+        ctl[E_ERRORS] += 1
+        st = -1
+    if st > 0 and st & 1:
+        ctl[E_SATURATED] += 1
+    for r in range({n_out}):
+        buf = carray(jack_port_get_buffer(voidptr_at({ports_out}[r]), nframes), ({period},), np.float32)
+        row = {row_of}[r]
+        for i in range({period}):
+            buf[i] = {sensed}[row, i] * scale[1] if (row >= 0 and st >= 0) else 0.0
+    ctl[E_BLOCKS] += 1
+    return 0
+"""
+
+
+def _jack_port_get_buffer():
+    # By symbol name (cacheable); libjack's symbols must be visible to numba's linker.
+    import ctypes.util
+
+    import llvmlite.binding as llvm
+    from numba import types
+
+    llvm.load_library_permanently(ctypes.util.find_library("jack") or "libjack.so.0")
+    return types.ExternalFunction("jack_port_get_buffer", types.voidptr(types.voidptr, types.uint32))
+
+
+try:
+    jack_port_get_buffer = _jack_port_get_buffer()
+except Exception:  # noqa: BLE001 - no libjack: the Python process callback, or nothing, runs
+    jack_port_get_buffer = None
+
+
+def build_process(plant, inports, outports, ctl):
+    """The emulator's JACK process callback compiled to C (a numba ``cfunc``): ports ->
+    ``drive`` (volts), the simulated groups' kernels, ``sensed`` -> ports (full scale), all
+    without Python. Returns ``(cfunc, keep)``; ``keep[0]`` (int64 addresses) is its ``arg``."""
+    from .._numba import package_stamp
+    from ._audio_kernels import _Table, kernel_call
+
+    if jack_port_get_buffer is None:
+        raise OSError("libjack not found")
+    scale = np.array([plant.volts_per_fs, plant.fs_per_amp])
+    name = _Table(ctl, scale)
+    port_ptr = lambda ports: np.array([int(jack_ffi().cast("uintptr_t", p._ptr)) for p in ports] or [0],  # noqa: E731
+                                      dtype=np.int64)
+    p_in, p_out = port_ptr(inports), port_ptr(outports)
+    row_of = np.array(list(plant.row_of) or [-1], dtype=np.int64)
+    fns, imports = {}, []
+    steps = "\n".join(f"        st |= {kernel_call(k, a, name, fns, imports)}" for k, a in plant.calls)
+    steps = steps or "        pass"
+    fields = dict(period=plant.drive.shape[1], n_in=len(inports), n_out=len(outports), ports_in=name(p_in),
+                  ports_out=name(p_out), row_of=name(row_of), drive=name(plant.drive), sensed=name(plant.sensed),
+                  steps=steps, imports="\n".join(imports), stamp=package_stamp().hex()[:16])
+    keep = (scale, p_in, p_out, row_of, *name.scalars())
+    fields["arrays"] = "\n".join(name.lines)
+    fields["n_tab"] = len(name.addresses)
+    from ._audio_kernels import load_generated
+
+    module = load_generated(_PROCESS.format(**fields))
+    return module.process, (np.array(name.addresses, dtype=np.int64), *keep)
+
+
+def jack_ffi():
+    import jack
+
+    return jack._ffi
+
+
+class Emulator:
+    """The JACK client: ports, process callback, and the main thread's connection logic."""
+
+    def __init__(self, client, plant: Plant, pattern: str):
+        self.client, self.plant = client, plant
+        self.pattern = pattern
+        self.period = client.blocksize
+        self.inports = [client.inports.register(n) for n in plant.in_names]
+        self.outports = [client.outports.register(n) for n in plant.out_names]
+        self.reset_pending = False
+        self.blocks = self.errors = self.odd = self.xruns = self.saturated = 0
+        self.wake = threading.Event()
+        self.stop = threading.Event()
+        self.server_gone = None
+        self.ctl = np.zeros(6, dtype=np.int64)
+        self.c_process = self._keep = None
+        if os.environ.get("RTCTL_AUDIO_CFUNC", "1") != "0":
+            try:
+                self.c_process, self._keep = build_process(plant, self.inports, self.outports, self.ctl)
+            except Exception as e:  # noqa: BLE001 - the Python process callback does the same job
+                print(f"rtctl emulate audio: C process callback unavailable ({type(e).__name__}: {e}); "
+                      "using Python", file=sys.stderr)
+        if self.c_process is not None:
+            import jack
+
+            self._cb = jack._ffi.cast("JackProcessCallback", self.c_process.address)
+            self._arg = jack._ffi.cast("void *", int(self._keep[0].ctypes.data))
+            if jack._lib.jack_set_process_callback(client._ptr, self._cb, self._arg):
+                raise RuntimeError("jack_set_process_callback failed")
+        else:
+            client.set_process_callback(self.process)
+        client.set_xrun_callback(self._xrun)
+        client.set_shutdown_callback(self._shutdown)
+        client.set_port_registration_callback(lambda port, register: self.wake.set(), only_available=False)
+
+    def process(self, frames):
+        """JACK's real-time thread: ports -> volts, plant kernels, amperes -> ports."""
+        p = self.plant
+        try:
+            if frames != self.period:  # the server changed its period: silence, counted
+                for port in self.outports:
+                    port.get_array().fill(0.0)
+                self.odd += 1
+                return
+            if self.reset_pending:
+                p.reset()
+                self.reset_pending = False
+            for c, port in enumerate(self.inports):
+                np.multiply(port.get_array(), p.volts_per_fs, out=p.drive[c])
+            if p.step() & 1:
+                self.saturated += 1
+            for port, r in zip(self.outports, p.row_of):
+                np.multiply(p.sensed[r] if r >= 0 else p.zeros, p.fs_per_amp, out=port.get_array(),
+                            casting="same_kind")
+            self.blocks += 1
+        except Exception:  # noqa: BLE001 - never into JACK's thread; outputs silent, counted
+            self.errors += 1
+            for port in self.outports:
+                port.get_array().fill(0.0)
+
+    def _xrun(self, delay_usecs):
+        self.xruns += 1
+
+    def _shutdown(self, status, reason):
+        self.server_gone = reason or "JACK server shut down"
+        self.stop.set()
+        self.wake.set()
+
+    # --- main thread ----------------------------------------------------------------------------
+
+    def _find_client(self) -> str | None:
+        ports = self.client.get_ports(f"^({self.pattern}):out_[0-9]+$", is_audio=True, is_input=False)
+        names = sorted({p.name.split(":", 1)[0] for p in ports} - {self.client.name})
+        return names[0] if names else None
+
+    def _port(self, name):
+        try:
+            return self.client.get_port_by_name(name)
+        except Exception:  # noqa: BLE001 - jack.JackError: not (or no longer) there
+            return None
+
+    def _wiring(self, run):
+        p = self.plant
+        src = [(f"{run}:out_{o}", port) for o, port in zip(p.outputs, self.inports)]
+        dst = [(port, f"{run}:in_{i}") for i, port in zip(p.inputs, self.outports)]
+        return src, dst
+
+    def _reset_plant(self) -> None:
+        """Plant at rest before a new run's first block. The C callback is paused around the
+        (Python) reset: it outputs silence meanwhile."""
+        if self.c_process is None:
+            self.reset_pending = True
+            return
+        self.ctl[E_PAUSE] = 1
+        t = time.monotonic()
+        while not self.ctl[E_PAUSED] and time.monotonic() - t < 0.5:
+            time.sleep(0.0005)
+        self.plant.reset()
+        self.ctl[E_PAUSE] = 0
+
+    def counts(self) -> tuple:
+        """(blocks, failed blocks, odd-size blocks, saturated blocks), from whichever callback ran."""
+        if self.c_process is None:
+            return self.blocks, self.errors, self.odd, self.saturated
+        c = self.ctl
+        return int(c[E_BLOCKS]), int(c[E_ERRORS]), int(c[E_ODD]), int(c[E_SATURATED])
+
+    def _connect(self, run) -> str | None:
+        """Connect to ``run``'s ports once all of them exist; the name of one of them (to watch
+        for the run's end), or None while some are still missing."""
+        src, dst = self._wiring(run)
+        names = [s for s, _ in src] + [d for _, d in dst]
+        if not names or any(self._port(n) is None for n in names):
+            return None
+        self._reset_plant()
+        for s, port in src:
+            self.client.connect(s, port)
+        for port, d in dst:
+            target = self._port(d)
+            for other in self.client.get_all_connections(target):
+                if other.name != port.name:  # e.g. system:capture_N, auto-connected by PortAudio
+                    self.client.disconnect(other, target)
+            self.client.connect(port, d)
+        return names[0]
+
+    def serve(self) -> int:
+        """Connect to each rtctl run as it appears, until SIGTERM/SIGINT or the server goes."""
+        print("waiting", flush=True)
+        run, watch, first_seen, warned = None, None, {}, set()
+        while not self.stop.is_set():
+            self.wake.wait(0.05)
+            self.wake.clear()
+            if run is not None and self._port(watch) is None:
+                run = None  # that run ended: wait for the next one
+            if run is not None:
+                continue
+            cand = self._find_client()
+            if cand is None:
+                continue
+            try:
+                watch = self._connect(cand)
+            except Exception as e:  # noqa: BLE001 - the run went away mid-way: wait again
+                print(f"rtctl emulate audio: connecting to {cand} failed ({e})", file=sys.stderr)
+                watch = None
+            if watch is not None:
+                run = cand
+                first_seen.pop(cand, None)
+                print("ready", flush=True)
+            elif time.monotonic() - first_seen.setdefault(cand, time.monotonic()) > 2.0 and cand not in warned:
+                warned.add(cand)
+                print(f"rtctl emulate audio: {cand} lacks ports for this scene's io.outputs/io.inputs "
+                      "(does the run use the same scene and --set?)", file=sys.stderr)
+        if self.server_gone:
+            print(f"rtctl emulate audio: error: JACK server gone ({self.server_gone})", file=sys.stderr)
+            return 1
+        return 0
+
+
+def main(argv=None) -> int:
+    """``rtctl emulate audio``; returns the exit status."""
+    args = _parser().parse_args(argv)
+    try:
+        import jack
+    except (ImportError, OSError) as e:
+        print(f"rtctl emulate audio: error: needs the JACK-Client package and libjack ({e})", file=sys.stderr)
+        return 2
+    from .. import scene as scenes
+
+    try:
+        sc = scenes.load(args.scene, args.overrides)
+        jack.set_error_function(lambda msg: None)  # libjack's own chatter while it looks for a server
+        try:
+            client = jack.Client(args.name, no_start_server=True, servername=args.server)
+        except jack.JackError as e:
+            print(f"rtctl emulate audio: error: no JACK server to join ({e}); start one, e.g. "
+                  "jackd -d dummy -r 48000 -p 64", file=sys.stderr)
+            return 2
+        jack.set_error_function()
+        fs, period = client.samplerate, client.blocksize
+        if float(fs) != float(sc.timing.fs):
+            client.close()
+            print(f"rtctl emulate audio: error: the JACK server runs at {fs} Hz, the scene at "
+                  f"{sc.timing.fs:g} Hz: --set timing.fs={fs} or restart jackd with -r {sc.timing.fs:g}",
+                  file=sys.stderr)
+            return 2
+        plant = Plant(sc, float(fs), period)
+    except RtctlError as e:
+        print(f"rtctl emulate audio: error: {e}", file=sys.stderr)
+        return 2
+    emu = Emulator(client, plant, args.connect)
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: (emu.stop.set(), emu.wake.set()))
+    # The process callback needs the GIL every period: keep cyclic-GC pauses out of its way
+    # (everything built so far is long-lived) and make a GIL holder yield within ~0.3 ms.
+    gc.collect()
+    gc.freeze()
+    sys.setswitchinterval(min(sys.getswitchinterval(), 0.25 * period / fs))
+    client.activate()
+    try:
+        code = emu.serve()
+    finally:
+        client.deactivate()
+        client.close()
+    blocks, errors, odd, saturated = emu.counts()
+    print(f"rtctl emulate audio: {blocks} blocks, {emu.xruns} xruns, {errors} failed blocks, {saturated} "
+          f"saturated, {'C' if emu.c_process is not None else 'Python'} process callback", file=sys.stderr)
+    return code
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
