@@ -263,7 +263,7 @@ class Rig:
                              f"{scene.stimulus.kind!r}")
         mats = _materials(scene)
         ch0, row0 = 0, 0
-        latency = int(getattr(self.device, "latency_blocks", 1))
+        latency = scene.io.latency_blocks or int(getattr(self.device, "latency_blocks", 1))
         for g in scene.actuator:
             n = g.grid[0] * g.grid[1]
             if g.type != "bimorph":

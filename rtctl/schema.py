@@ -302,6 +302,7 @@ SCENE = Table(
                 "inputs": Key("ints", (), "", "device input channel (0-based) per sensed row (each bimorph channel's segment currents, channel-major); [] = 0, 1, 2, ... (backends audio, daq)", 0, 1023, max_items=4096),
                 "volts_per_fs": Key("float", 150.0, "V", "drive volts at digital full scale (amplifier gain x converter full scale; backends audio, daq)", 0.0, 1e4, open_lo=True),
                 "amps_per_fs": Key("float", 0.01, "A", "segment current at input full scale (current-sense gain; backends audio, daq)", 0.0, 1e3, open_lo=True),
+                "latency_blocks": Key("int", 0, "", "blocks from a drive block to the sensed block answering it, used by the self-sensing observer; 0 = the backend's own figure (sim 1, audio 2 as measured through JACK, daq 2)", 0, 64),
                 "baud": Key("int", 115200, "", "serial baud rate (backend serial; ignored by pseudo-terminals)", 300, 12_000_000),
                 "timeout": Key("float", 0.02, "s", "serial acknowledgement timeout before a frame is resent", 0.001, 10.0),
                 "retries": Key("int", 3, "", "serial resends of one frame before the device counts as lost", 0, 100),

@@ -225,6 +225,11 @@ class AudioBackend:
     paced = True
     truth = None
     probes = ()
+    #: Blocks from a drive block to the sensed block that answers it, for the observer: one for
+    #: the callback's own cycle plus one for the server's (measured through JACK: 2.00 blocks at
+    #: blocks 32 and 64, bench/hil_audio.py). An interface with converter delays differs:
+    #: ``io.latency_blocks`` overrides it.
+    latency_blocks = 2
 
     def __init__(self, sd, index, dev, host_api, layout, out, sensed, outputs, inputs, volts_per_fs, amps_per_fs):
         self._sd, self._index = sd, index
