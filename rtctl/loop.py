@@ -94,13 +94,8 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
                                    "overrides": list(scene.overrides), "sensed_rows": rig.sensed_names})
     times = np.zeros(n_blocks)
     faults: list[str] = []
-    status_seen = 0
-    misses = 0
-    interrupted = False
     bar = _Progress(n_blocks, progress)
     period = block / fs
-    k = 0
-    run_blocks = n_blocks
     dev = rig.device
     if getattr(dev, "paced", False):
         realtime = True  # hardware: the device's clock is the clock

@@ -146,14 +146,13 @@ def test_daq_lost_device_is_a_status_not_an_exception(fake_nidaqmx):
     assert "device removed" in rig.device.stats()["error"]
 
 
-def test_channel_map_errors_name_the_key():
-    with pytest.raises(SceneError, match="io.outputs has 2 entries for 5 rows"):
-        daq.channel_map("outputs", (0, 1), 5)
-    with pytest.raises(SceneError, match="twice"):
-        daq.channel_map("inputs", (0, 0), 2)
-    with pytest.raises(SceneError, match="the device has 8"):
-        daq.channel_map("outputs", (0, 9), 2, 8)
-    np.testing.assert_array_equal(daq.channel_map("outputs", (), 3), [0, 1, 2])
+def test_daq_channel_map_errors_name_the_key(fake_nidaqmx):
+    from rtctl.rig import build
+
+    with pytest.raises(SceneError, match="io.outputs has 2 entries but the scene has 5 drive channels"):
+        build(scene.load("line-bimorph-5", ["io.backend=daq", "io.device=Dev1", "io.outputs=[0, 1]"]))
+    with pytest.raises(SceneError, match="device channel 3 is given twice"):
+        build(scene.load("line-bimorph-5", ["io.backend=daq", "io.device=Dev1", "io.outputs=[0, 1, 2, 3, 3]"]))
 
 
 def test_devices_lists_every_kind(capsys):

@@ -64,3 +64,13 @@ def test_observer_refuses_rendered_stimuli():
 
         build(scene.load("line-bimorph-5", ["control.observe=true", "stimulus.kind=shape",
                                              "stimulus.shape=cross"]))
+
+
+def test_observer_refuses_an_ill_conditioned_design(monkeypatch):
+    """A design beyond the rig's bound is refused by name, not run on noise."""
+    from rtctl import rig as rig_mod
+    from rtctl.errors import ModelError
+
+    monkeypatch.setattr(rig_mod, "OBSERVER_MAX_COND", 1.0)  # the bundled beam's designs sit at 5-8
+    with pytest.raises(ModelError, match="ill-conditioned"):
+        rig_mod.build(scene.load("line-bimorph-5", ["control.observe=true"]))

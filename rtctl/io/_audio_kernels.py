@@ -307,8 +307,6 @@ def build_callback(*, calls, snapshot, ctl, inputs, in_scale, sensed, outputs, o
     TypeError
         An argument the generated code cannot reach (not a C-contiguous numeric array).
     """
-    import sys
-
     from .._numba import package_stamp
 
     scale = np.array([in_scale, out_scale])

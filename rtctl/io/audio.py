@@ -38,9 +38,9 @@ import time
 
 import numpy as np
 
-from ..errors import DeviceError, SceneError
+from ..errors import DeviceError
 from . import _audio_kernels as K
-from .base import Snapshots
+from .base import Snapshots, channel_map  # noqa: F401 - channel_map is part of this module's API
 
 from ..safety import DEVICE_LOST, IO_XRUN
 
@@ -147,36 +147,6 @@ def find_device(devices, hostapis, name: str, host_api: str = "") -> int:
         raise DeviceError(f"{where} matches {len(hits)} devices: {which}; "
                           "give more of the name or set io.host_api")
     return hits[0]
-
-
-def channel_map(values, n_rows: int, n_device: int, key: str, rows: str) -> np.ndarray:
-    """The device channel of each of ``n_rows`` rows: ``values``, or 0, 1, ... when empty.
-
-    Raises
-    ------
-    SceneError
-        Wrong length or a device channel given twice.
-    DeviceError
-        A channel the device does not have.
-
-    Examples
-    --------
-    >>> channel_map((), 3, 8, "io.outputs", "drive channels").tolist()
-    [0, 1, 2]
-    >>> channel_map((4, 2), 2, 8, "io.outputs", "drive channels").tolist()
-    [4, 2]
-    """
-    m = np.arange(n_rows, dtype=np.int64) if len(values) == 0 else np.asarray(values, dtype=np.int64)
-    if m.size != n_rows:
-        raise SceneError(f"{key} has {m.size} entries but the scene has {n_rows} {rows}: give one "
-                         f"device channel per row, or [] for 0..{n_rows - 1}")
-    u, c = np.unique(m, return_counts=True)
-    if np.any(c > 1):
-        raise SceneError(f"{key} = {m.tolist()}: device channel {int(u[c > 1][0])} is given twice")
-    if m.size and (m.min() < 0 or m.max() >= n_device):
-        bad = int(m.max()) if m.max() >= n_device else int(m.min())
-        raise DeviceError(f"{key} = {m.tolist()}: the device has channels 0..{n_device - 1}, not {bad}")
-    return m
 
 
 def open_backend(scene, layout, out, sensed) -> "AudioBackend":
@@ -403,7 +373,7 @@ class AudioBackend:
             self._cfunc_note = "off (RTCTL_AUDIO_CFUNC=0)"
             return
         try:
-            calls, snap = kernel_calls(rig, self.snaps)
+            calls, snap = list(rig.kernel_calls()), rig.snapshot_call(self.snaps)
             t = time.perf_counter()
             self._cfunc, self._cfunc_keep = K.build_callback(
                 calls=calls, snapshot=snap, ctl=self.ctl, inputs=self._inputs, in_scale=self._in_scale,
@@ -602,13 +572,6 @@ class AudioBackend:
             _bounded(lambda: release(self._sd))
         except BaseException:  # noqa: BLE001
             pass
-
-
-def kernel_calls(rig, snaps):
-    """The rig's block step as ``[(kernel, args), ...]`` and its snapshot as ``(kernel, args)``
-    (``slot`` last, left out), for the C callback. tests/test_audio_backend.py checks that the C
-    callback and ``rig.step()``/``rig.snapshot()`` give identical blocks."""
-    return list(rig.kernel_calls()), rig.snapshot_call(snaps)
 
 
 def _bounded(fn, timeout: float = 0.5) -> bool:

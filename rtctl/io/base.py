@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import DeviceError, SceneError
+
 
 @dataclass(frozen=True)
 class Layout:
@@ -98,3 +100,35 @@ class Snapshots:
         self.compute_us = np.zeros(n)
         self.done = 0      # blocks completed by the device thread
         self.overrun = 0   # blocks the engine had not read before their slot was reused
+
+
+def channel_map(values, n_rows: int, n_device: int | None, key: str, rows: str) -> np.ndarray:
+    """The device channel of each of ``n_rows`` rows (``io.outputs`` / ``io.inputs``): ``values``,
+    or 0, 1, ... when empty; ``n_device`` None when the device's channel count is not known here
+    (a DAQ checks its channel names itself).
+
+    Raises
+    ------
+    SceneError
+        Wrong length or a device channel given twice.
+    DeviceError
+        A channel the device does not have.
+
+    Examples
+    --------
+    >>> channel_map((), 3, 8, "io.outputs", "drive channels").tolist()
+    [0, 1, 2]
+    >>> channel_map((4, 2), 2, 8, "io.outputs", "drive channels").tolist()
+    [4, 2]
+    """
+    m = np.arange(n_rows, dtype=np.int64) if len(values) == 0 else np.asarray(values, dtype=np.int64)
+    if m.size != n_rows:
+        raise SceneError(f"{key} has {m.size} entries but the scene has {n_rows} {rows}: give one "
+                         f"device channel per row, or [] for 0..{n_rows - 1}")
+    u, c = np.unique(m, return_counts=True)
+    if np.any(c > 1):
+        raise SceneError(f"{key} = {m.tolist()}: device channel {int(u[c > 1][0])} is given twice")
+    if n_device is not None and m.size and (m.min() < 0 or m.max() >= n_device):
+        bad = int(m.max()) if m.max() >= n_device else int(m.min())
+        raise DeviceError(f"{key} = {m.tolist()}: the device has channels 0..{n_device - 1}, not {bad}")
+    return m

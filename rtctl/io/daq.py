@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import DeviceError, SceneError
 from ..safety import DEVICE_LOST
+from .base import channel_map
 
 FULL_SCALE_V = 10.0
 PRIME = 2  # blocks of zeros written before the start: the output latency
@@ -37,19 +38,6 @@ def driver_problem() -> str:
     except Exception as e:  # nidaqmx.errors.DaqNotFoundError and friends: no driver
         return f"io.backend = 'daq': the NI-DAQmx driver is not available ({type(e).__name__}: {e})"
     return ""
-
-
-def channel_map(key: str, given, n_rows: int, n_device: int | None = None) -> np.ndarray:
-    """Device channel per row from ``io.outputs`` / ``io.inputs`` (``()``: 0, 1, ...), checked."""
-    m = np.arange(n_rows) if not len(given) else np.asarray(given, dtype=np.int64)
-    if m.size != n_rows:
-        raise SceneError(f"io.{key} has {m.size} entries for {n_rows} rows; give one device channel per row "
-                         "or leave it empty")
-    if np.unique(m).size != m.size:
-        raise SceneError(f"io.{key} = {list(map(int, m))} names a device channel twice")
-    if n_device is not None and m.size and m.max() >= n_device:
-        raise SceneError(f"io.{key} names channel {int(m.max())}, the device has {n_device} (0..{n_device - 1})")
-    return m
 
 
 class DaqBackend:
@@ -70,8 +58,8 @@ class DaqBackend:
         if not io.device:
             raise SceneError("io.backend = 'daq' needs io.device, the NI device name (see `rtctl devices`)")
         self.out, self.sensed, self.block = out, sensed, layout.block
-        self.o_map = channel_map("outputs", io.outputs, layout.n_channels)
-        self.i_map = channel_map("inputs", io.inputs, layout.n_sensed)
+        self.o_map = channel_map(io.outputs, layout.n_channels, None, "io.outputs", "drive channels")
+        self.i_map = channel_map(io.inputs, layout.n_sensed, None, "io.inputs", "sensed rows")
         self.o_gain = FULL_SCALE_V / io.volts_per_fs
         self.i_gain = io.amps_per_fs / FULL_SCALE_V
         self._o = np.zeros((layout.n_channels, self.block))

@@ -27,24 +27,16 @@ def quiet_c_stderr():
         os.close(saved)
 
 
-def import_sounddevice():
-    """sounddevice, imported without letting libjack start a server of its own and without the
-    host APIs' chatter; ``OSError`` when PortAudio is missing."""
-    os.environ.setdefault("JACK_NO_START_SERVER", "1")
-    with quiet_c_stderr():
-        import sounddevice
-
-    return sounddevice
-
-
 def audio_devices() -> dict:
     """``{"devices": [{name, host_api, inputs, outputs, default_samplerate}], "note": str}``."""
-    try:
-        sd = import_sounddevice()
-    except OSError as e:
-        return {"devices": [], "note": f"PortAudio library not found ({e}); install libportaudio2"}
-    from .audio import rescan
+    from ..errors import DeviceError
+    from .audio import _sounddevice, rescan
 
+    try:
+        with quiet_c_stderr():  # the host APIs' chatter while PortAudio probes them
+            sd = _sounddevice()
+    except DeviceError as e:
+        return {"devices": [], "note": str(e)}
     with quiet_c_stderr():
         rescan(sd)  # PortAudio may be shut down (last stream closed) or a server started since
         apis = sd.query_hostapis()

@@ -148,7 +148,6 @@ def design(beam, freq_hz, frontend: FrontEnd | None = None, unknown_support=None
                          "identify it)")
     if max_cond is None:
         max_cond = MAX_COND_SUPPORT if unknown_support else MAX_COND
-    L, EI = beam.length, beam.lam.EI
     if unknown_support:
         A, b, Tu, tv, Ru, rv, unit = _root_form(beam, w)
     else:
