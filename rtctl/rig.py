@@ -367,9 +367,18 @@ class Rig:
             temperature=[x.temperature for x in lim], ambient=[x.ambient for x in lim],
             loss_tangent=[x.loss_tangent for x in lim], thermal_resistance=[x.thermal_resistance for x in lim],
             thermal_tau=[x.thermal_tau for x in lim],
+            # mean bounds from the group's type (the schema admits them only there); a bound of 1
+            # can never be reached, so it costs nothing
+            dc_offset=[g.max_voltage * x.dc_offset if getattr(x, "dc_offset", 1.0) < 1.0 else np.inf
+                       for g, x in zip(groups, lim)],
+            dc_tau=[getattr(x, "dc_tau", 1.0) for x in lim],
+            duty=[x.duty if getattr(x, "duty", 1.0) < 1.0 else np.inf for x in lim],
+            duty_tau=[getattr(x, "duty_tau", 1.0) for x in lim],
         )
         if self.scene.io.backend == "serial":
-            self.limiter.commands_only()
+            from .io.serial import COMMAND_THRESHOLD
+
+            self.limiter.commands_only(COMMAND_THRESHOLD * np.array([g.max_voltage for g in groups]))
 
     def _compile(self):
         """Compile (or load from numba's cache) every kernel now, not in the first block."""

@@ -237,7 +237,7 @@ def _show(v: Any) -> str:
     return s if len(s) <= 60 else s[:57] + "..."
 
 
-def _table(spec: Table, data: Any, path: str, origin: str, required_ok: bool = False) -> dict:
+def _table(spec: Table, data: Any, path: str, origin: str, required_ok: bool = False, kind: Any = None) -> dict:
     if not isinstance(data, Mapping):
         raise _fail(origin, path or "<top>", data, "must be a table")
     unknown = [k for k in data if k not in spec.keys]
@@ -250,7 +250,8 @@ def _table(spec: Table, data: Any, path: str, origin: str, required_ok: bool = F
         )
         raise SceneError(f"{origin}: unknown key {full!r}{more}")
     out: dict[str, Any] = {}
-    kind = data.get("type")  # an actuator item's type: keys of other types must be absent
+    # an actuator item's type (its sub-tables inherit it): keys of other types must be absent
+    kind = data.get("type", kind)
     for name, sub in spec.keys.items():
         full = f"{path}.{name}" if path else name
         if sub.types and kind not in sub.types:
@@ -259,7 +260,7 @@ def _table(spec: Table, data: Any, path: str, origin: str, required_ok: bool = F
                             f"not {kind!r}")
             continue
         if isinstance(sub, Table):
-            out[name] = _subtable(sub, data.get(name), full, origin)
+            out[name] = _subtable(sub, data.get(name), full, origin, kind)
         elif name in data:
             out[name] = _value(sub, data[name], full, origin)
         elif sub.default is REQUIRED and not required_ok:
@@ -269,7 +270,7 @@ def _table(spec: Table, data: Any, path: str, origin: str, required_ok: bool = F
     return out
 
 
-def _subtable(spec: Table, data: Any, path: str, origin: str) -> Any:
+def _subtable(spec: Table, data: Any, path: str, origin: str, kind: Any = None) -> Any:
     if spec.many:
         if data is None:
             if not spec.optional:
@@ -293,7 +294,7 @@ def _subtable(spec: Table, data: Any, path: str, origin: str) -> Any:
         if not spec.optional:
             raise SceneError(f"{origin}: missing required table [{path}] ({spec.doc})")
         data = {}
-    return _table(spec, data, path, origin)
+    return _table(spec, data, path, origin, kind=kind)
 
 
 def _item_name(x: Any, i: int) -> str:

@@ -94,6 +94,8 @@ def _subjects() -> Table:
                  "whose preload is nearest `finger.preload`", many=True)
 
 
+PIEZO_TYPES = ("bimorph", "pvdf")
+
 LIMITS = Table(
     {
         "slew": Key("float", 5.0e6, "V/s", "largest voltage change per second at the output", 0.0, 1e9, open_lo=True),
@@ -103,8 +105,12 @@ LIMITS = Table(
         "loss_tangent": Key("float", 0.02, "", "dielectric loss tangent heating the actuator", 0.0, 1.0),
         "thermal_resistance": Key("float", 150.0, "K/W", "actuator to ambient", 0.0, 1e5, open_lo=True),
         "thermal_tau": Key("float", 20.0, "s", "thermal time constant", 1e-3, 1e5),
+        "dc_offset": Key("float", 0.1, "", "largest running mean of a piezo's drive (depolarisation, creep), as a fraction of max_voltage; 1: no bound", 0.0, 1.0, open_lo=True, types=PIEZO_TYPES),
+        "dc_tau": Key("float", 10.0, "s", "time constant of that running mean", 0.0, 1e4, open_lo=True, types=PIEZO_TYPES),
+        "duty": Key("float", 0.5, "", "largest heating duty of one SMA spring: running mean of (v / V_peak)^2 of its polarity (on/off drive at V_peak: the fraction of time on); 1: no bound", 0.0, 1.0, open_lo=True, types=("sma",)),
+        "duty_tau": Key("float", 2.0, "s", "time constant of that running mean", 0.0, 1e4, open_lo=True, types=("sma",)),
     },
-    "final limiter: cannot be switched off; voltage (max_voltage), slew, current, temperature",
+    "final limiter: cannot be switched off; voltage (max_voltage), slew, current, temperature, DC offset (piezo), duty (SMA)",
 )
 
 ACTUATOR = Table(

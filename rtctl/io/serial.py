@@ -31,9 +31,10 @@ from .. import safety
 from ..errors import DeviceError, SceneError
 from . import protocol as P
 
-#: Status bit of a lost device (the lead's :data:`rtctl.safety.DEVICE_LOST` once it exists).
-DEVICE_LOST = getattr(safety, "DEVICE_LOST", 128)
+DEVICE_LOST = safety.DEVICE_LOST
 PIN_TYPES = ("dot", "sma")
+#: a drive beyond +-this fraction of max_voltage is an up/down command; within it, off
+COMMAND_THRESHOLD = 0.5
 _RTT_RING = 8192
 _TX_LIMIT = 1 << 16
 
@@ -202,7 +203,7 @@ class SerialBackend:
         self._dec = decoder
         self.out, self.sensed = out, sensed
         self.n = out.shape[0]
-        self.threshold = 0.5 * float(group.max_voltage)
+        self.threshold = COMMAND_THRESHOLD * float(group.max_voltage)
         self.timeout, self.retries, self.keepalive = float(timeout), int(retries), float(keepalive)
         self.commands = np.zeros(self.n, dtype=np.uint8)
         self.states = np.zeros(self.n, dtype=np.uint8)
