@@ -136,8 +136,12 @@ def long_run(srv, block, seconds, baseline_s):
         baseline = counter.take()
         mark = len(srv.log_text())
         with tempfile.TemporaryDirectory() as tmp:
-            r = subprocess.run(CLI + ["run", SCENE, "--json", "--no-plot", "--out", tmp, *sets(timing + AUDIO)],
+            # the burst guard off: every xrun of the whole run is counted, and what the default
+            # guard (io.xrun_limit in io.xrun_window) would have done is replayed on the flags
+            r = subprocess.run(CLI + ["run", SCENE, "--json", "--no-plot", "--out", tmp,
+                                      *sets(timing + AUDIO + ["io.xrun_limit=0"])],
                                env=srv.env, capture_output=True, text=True, timeout=seconds + 300)
+            bursts = xrun_bursts(tmp, block) if r.returncode == 0 else {}
         server = counter.take()
         causes = xrun_causes(srv.log_text()[mark:])
         counter.close()
@@ -152,7 +156,30 @@ def long_run(srv, block, seconds, baseline_s):
             "server_xruns_during_run": server, "server_xruns_idle": baseline, "idle_seconds": baseline_s,
             "late_blocks": io["late_blocks"], "max_callback_gap_us": io["max_callback_gap_us"],
             "callback_us": s["block_time_us"], "cfunc": io["cfunc"],
-            "emulator": err.strip().splitlines()[-1] if err.strip() else "", "jackd_xrun_causes": causes}
+            "emulator": err.strip().splitlines()[-1] if err.strip() else "", "jackd_xrun_causes": causes,
+            **bursts}
+
+
+def xrun_bursts(out_dir, block):
+    """The most xrun-flagged blocks in any window of the default io.xrun_window, and the block at
+    which the default burst guard (the device thread's leaky bucket) would have ended the run."""
+    import numpy as np
+
+    from rtctl.safety import IO_XRUN
+    from rtctl.schema import SCENE as SPEC
+    from rtctl.trace import TraceReader
+
+    io = SPEC.keys["io"].keys
+    limit, window = io["xrun_limit"].default, io["xrun_window"].default
+    flags = (TraceReader(os.path.join(out_dir, "trace")).status & IO_XRUN) != 0
+    w = max(1, round(window * 48000 / block))
+    most = int(np.convolve(flags, np.ones(w, dtype=int), mode="valid").max()) if flags.size >= w else int(flags.sum())
+    level, fired = 0, None
+    for k, f in enumerate(flags):
+        level = level - min(level, limit) + (w if f else 0)
+        if level > limit * w and fired is None:
+            fired = k
+    return {"most_xruns_in_window": most, "window_s": window, "default_guard_would_stop_at_block": fired}
 
 
 # --- callback cost without a server ----------------------------------------------------------------
@@ -240,7 +267,8 @@ def busy_engine(srv, block, seconds, busy):
     res = {}
     for kind in ("python", "cfunc"):
         os.environ["RTCTL_AUDIO_CFUNC"] = "1" if kind == "cfunc" else "0"
-        sc = scenes.load(SCENE, [f"timing.block={block}", *AUDIO])
+        # the burst guard off: these runs count xruns, a burst must not end them
+        sc = scenes.load(SCENE, [f"timing.block={block}", *AUDIO, "io.xrun_limit=0"])
         rig = build(sc)
         dev = rig.device
         n = int(seconds * FS / block)

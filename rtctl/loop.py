@@ -148,10 +148,11 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
 
 def _fault_message(rig, k, status, period) -> str:
     what = safety.describe(status & safety.FAULTS)
-    if status & safety.DEVICE_LOST:
+    if status & (safety.DEVICE_LOST | safety.XRUN_BURST):
         err = rig.device.stats().get("error") if hasattr(rig.device, "stats") else None
         if err:
-            what = [w if "device lost" not in w else f"I/O device lost: {err}" for w in what]
+            what = [f"I/O device lost: {err}" if "device lost" in w else f"audio xrun burst: {err}"
+                    if "xrun burst" in w else w for w in what]
     return f"at {k * period:.4f} s: " + "; ".join(what) + "; outputs faded to 0 V"
 
 

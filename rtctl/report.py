@@ -90,6 +90,7 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             "settle_ms": None,
             "v_peak": float(np.max(np.abs(drive))) if n else 0.0,
             "limited": bool(rig.limiter.counts[:, ch].sum() > 0),
+            "limited_by": limited_by(rig.limiter, ch),
         }
         if tip is not None and not freqs and n and np.all(np.isfinite(tip)):
             # a rendered stimulus (image, Braille, shape): no tone to fit, so the stroke over
@@ -164,7 +165,16 @@ def print_table(summary: dict) -> None:
         print(f"{r['name']:<12}{(r['receptor'] or '-'):<10}{_fmt(r['freq_hz'], '9.1f')}{r['v_peak']:8.1f}"
               f"{_fmt(r['true_um'], '10.3g')}{_fmt(r['threshold_um'], '10.3g')}{_fmt(r['target_um'], '10.3g')}"
               f"{_fmt(r['error_pct'], '9.1f')}{_fmt(r['settle_ms'], '10.0f')}  {felt}"
-              f"{' (limited)' if r['limited'] else ''}")
+              f"{' (limited: ' + ', '.join(r.get('limited_by') or ['?']) + ')' if r['limited'] else ''}")
+
+
+def limited_by(limiter, ch: int) -> list[str]:
+    """Which of the limiter's bounds changed channel ``ch``'s drive (its per-channel counts)."""
+    from .safety import MEAN_DC
+
+    mean = "dc offset" if limiter.mean_kind[ch] == MEAN_DC else "duty"
+    names = ("voltage", "slew/current", mean)
+    return [n for n, k in zip(names, limiter.counts[:, ch]) if k > 0]
 
 
 def _envelope(t: np.ndarray, x: np.ndarray, points: int = 20000):

@@ -48,9 +48,10 @@ IO_XRUN = 256
 ESTIMATE_NONFINITE = 512
 LIMIT_DC = 1024
 LIMIT_DUTY = 2048
+XRUN_BURST = 4096
 
 #: Status bits that end a run (outputs fade to zero first).
-FAULTS = NONFINITE | OVERTEMP | PLANT_NONFINITE | DEVICE_LOST
+FAULTS = NONFINITE | OVERTEMP | PLANT_NONFINITE | DEVICE_LOST | XRUN_BURST
 
 STATUS_NAMES = {
     LIMIT_VOLTAGE: "voltage limited",
@@ -65,6 +66,7 @@ STATUS_NAMES = {
     ESTIMATE_NONFINITE: "self-sensing estimate non-finite (a sensed reading was NaN/Inf)",
     LIMIT_DC: "DC offset limited (a piezo's running mean voltage held at limits.dc_offset)",
     LIMIT_DUTY: "duty limited (an SMA spring's running heating duty held at limits.duty)",
+    XRUN_BURST: "audio xrun burst (more than io.xrun_limit under/overflows within io.xrun_window)",
 }
 
 # limiter state rows: last output V, temperature, fade start V, running means (see below)
@@ -441,6 +443,12 @@ class Limiter:
     @property
     def temperature(self) -> np.ndarray:
         return self.state[_T]
+
+    @property
+    def mean_kind(self) -> np.ndarray:
+        """Per channel, the running-mean bound it has: ``MEAN_OFF``, ``MEAN_DC``, ``MEAN_DUTY``
+        or ``MEAN_DUTY_CMD``."""
+        return self.params[_MKIND]
 
     @property
     def mean(self) -> np.ndarray:

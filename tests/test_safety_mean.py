@@ -204,7 +204,7 @@ def test_a_scene_holding_an_sma_spring_runs_at_the_duty_bound(capsys, tmp_path):
     out = run_json(capsys, tmp_path, "sma-8x8", "timing.duration=4.0", "stimulus.tones.0.freq=0.1")
     assert out["faults"] == [] and any("duty limited" in w for w in out["warnings"])
     limited = [c["limited"] for c in out["channels"]]
-    assert limited[0] and not any(limited[1:])
+    assert limited[0] and not any(limited[1:]) and out["channels"][0]["limited_by"] == ["duty"]
     from rtctl.trace import TraceReader
 
     drive = TraceReader(tmp_path / "trace").signal("drive", 0)
@@ -218,4 +218,4 @@ def test_a_scene_with_a_dc_drive_on_a_bimorph_is_held_at_the_dc_bound(capsys, tm
     out = run_json(capsys, tmp_path, "line-bimorph-5", "timing.duration=0.5", "stimulus.tones.0.freq=0.2",
                    "stimulus.tones.0.shape=square", "actuator.lateral.limits.dc_tau=0.05")
     assert out["faults"] == [] and any("DC offset limited" in w for w in out["warnings"])
-    assert out["channels"][0]["limited"]
+    assert out["channels"][0]["limited"] and "dc offset" in out["channels"][0]["limited_by"]

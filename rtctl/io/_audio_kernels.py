@@ -15,7 +15,7 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 from .._numba import kernel
-from ..safety import _DVMAX, _FADE_FROM, _V
+from ..safety import _DVMAX, _FADE_FROM, _V, DEVICE_LOST, FAULTS, IO_XRUN, XRUN_BURST
 
 
 @kernel
@@ -103,6 +103,65 @@ def fade_frames(last, channel, scale, frames):
 
 
 @kernel
+def io_guard(ctl, sensed, out, xrun, state, params, fade, block):
+    """The device thread's own faults, checked after every block's step; returns status bits.
+
+    * **Xrun bursts** (``XRUN_BURST``): a leaky bucket, ``XRUN_ADD`` (W, the window in blocks) in
+      per flagged block and ``XRUN_LEAK`` (N, the xruns allowed in it) out per block; more than
+      ``XRUN_CAP`` (N W) in the bucket means more than about N flagged blocks within W.
+    * **Silent inputs** (``DEVICE_LOST``): every sensed sample exactly 0 while some output is
+      driven, for ``SILENT_LIMIT`` blocks, after the inputs have once been live. A converter
+      always carries noise; digital silence means nothing feeds the inputs any more (a sense
+      chain unplugged; under JACK, the plant's client gone, its ports disconnected).
+
+    On any fault (these or the block step's, ``step_status``) the shutdown fade starts here, in
+    the device thread, so the next block already fades: the engine thread learns of it later.
+    ``xrun`` holds the block step's status bits too (the caller ORs them in).
+    """
+    st = 0
+    if ctl[XRUN_ADD] > 0:
+        lvl = ctl[XRUN_LEVEL] - min(ctl[XRUN_LEVEL], ctl[XRUN_LEAK])
+        if xrun & IO_XRUN:
+            lvl += ctl[XRUN_ADD]
+        ctl[XRUN_LEVEL] = lvl
+        if lvl > ctl[XRUN_CAP]:
+            st |= XRUN_BURST
+            if ctl[GUARD] == 0:
+                ctl[GUARD] = GUARD_XRUNS
+    if ctl[SILENT_LIMIT] > 0 and sensed.shape[0] > 0:
+        quiet = True
+        for r in range(sensed.shape[0]):
+            for i in range(sensed.shape[1]):
+                if sensed[r, i] != 0.0:
+                    quiet = False
+                    break
+            if not quiet:
+                break
+        if not quiet:
+            ctl[LIVE] = 1
+            ctl[SILENT] = 0
+        elif ctl[LIVE] != 0:
+            driving = False
+            for r in range(out.shape[0]):
+                for i in range(out.shape[1]):
+                    if out[r, i] != 0.0:
+                        driving = True
+                        break
+                if driving:
+                    break
+            if driving:
+                ctl[SILENT] += 1
+            if ctl[SILENT] >= ctl[SILENT_LIMIT]:
+                st |= DEVICE_LOST
+                if ctl[GUARD] == 0:
+                    ctl[GUARD] = GUARD_SILENT
+    if (st | xrun) & FAULTS and ctl[STOP_BEGUN] == 0:
+        ctl[STOP_BEGUN] = 1
+        limiter_shutdown(state, params, fade, block)
+    return st
+
+
+@kernel
 def limiter_shutdown(state, params, fade, n_samples):
     """:meth:`rtctl.safety.Limiter.shutdown` over the limiter's arrays, callable from the device
     thread without Python: fade from the last outputs to 0 V over ``n_samples`` (longer where
@@ -122,8 +181,11 @@ def limiter_shutdown(state, params, fade, n_samples):
 
 #: Fields of the int64 control array shared by the device thread and the engine thread.
 (DONE, BUSY, HALT, FAILED, STOP_REQ, STOP_BEGUN, LAST_NS, IN_UNDER, IN_OVER, OUT_UNDER, OUT_OVER,
- FIRST_XRUN, LATE, CLIPPED, ODD, MAX_GAP, TS_SEC, TS_NSEC, STOP_AT) = range(19)
-N_CTL = 19
+ FIRST_XRUN, LATE, CLIPPED, ODD, MAX_GAP, TS_SEC, TS_NSEC, STOP_AT,
+ XRUN_LEVEL, XRUN_ADD, XRUN_LEAK, XRUN_CAP, LIVE, SILENT, SILENT_LIMIT, GUARD) = range(27)
+N_CTL = 27
+#: ``ctl[GUARD]``: which guard ended the run
+GUARD_SILENT, GUARD_XRUNS = 1, 2
 PA_CONTINUE, PA_ABORT = 0, 2  # paContinue, paAbort
 CLOCK_MONOTONIC = 1  # Linux; what time.perf_counter_ns reads
 
@@ -136,7 +198,7 @@ from numba import carray, cfunc, types
 
 from rtctl.io._audio_kernels import (BUSY, CLIPPED, CLOCK_MONOTONIC, DONE, FAILED, FIRST_XRUN, HALT,
     IN_UNDER, LAST_NS, LATE, MAX_GAP, ODD, PA_ABORT, PA_CONTINUE, STOP_AT, STOP_BEGUN, STOP_REQ, TS_NSEC, TS_SEC,
-    N_CTL, clock_gettime, fade_frames, frames_to_rows, limiter_shutdown, rows_to_frames, voidptr_at)
+    N_CTL, clock_gettime, fade_frames, frames_to_rows, io_guard, limiter_shutdown, rows_to_frames, voidptr_at)
 {imports}
 
 SIG = types.int32(types.voidptr, types.voidptr, types.uint64, types.voidptr, types.uint64, types.voidptr)
@@ -175,6 +237,7 @@ def callback(inp, outp, frames, time_info, flags, user):
 {read}
 {steps}
         ctl[CLIPPED] += rows_to_frames({out}, {outputs}, scale[1], fo, {last})
+        st |= io_guard(ctl, {sensed}, {out}, st, {lim_state}, {lim_params}, {lim_fade}, {block})
         k = ctl[DONE]
         slot = k % {ring}
         {snapshot}
@@ -322,6 +385,7 @@ def build_callback(*, calls, snapshot, ctl, inputs, in_scale, sensed, outputs, o
            f"{name(sensed)})" if n_in else ""
     fields = dict(n_out=n_out, block=block, io_xrun=io_xrun, lim_state=name(limiter[0]),
                   lim_params=name(limiter[1]), lim_fade=name(limiter[2]), read=read, steps=steps,
+                  sensed=name(sensed),
                   out=name(out), outputs=name(outputs), last=name(last), ring=status.shape[0], snapshot=snap,
                   period_ns=int(block / fs * 1e9), status=name(status), compute=name(compute),
                   stamp=package_stamp().hex()[:16])

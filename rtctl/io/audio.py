@@ -178,7 +178,8 @@ def open_backend(scene, layout, out, sensed) -> "AudioBackend":
     outputs = channel_map(io.outputs, layout.n_channels, dev["max_output_channels"], "io.outputs", "drive channels")
     inputs = channel_map(io.inputs, layout.n_sensed, dev["max_input_channels"], "io.inputs", "sensed rows")
     return AudioBackend(sd, idx, dev, apis[dev["hostapi"]]["name"], layout, out, sensed, outputs, inputs,
-                        float(io.volts_per_fs), float(io.amps_per_fs))
+                        float(io.volts_per_fs), float(io.amps_per_fs),
+                        guard=(float(io.silence_ms), int(io.xrun_limit), float(io.xrun_window)))
 
 
 class AudioBackend:
@@ -201,7 +202,8 @@ class AudioBackend:
     #: ``io.latency_blocks`` overrides it.
     latency_blocks = 2
 
-    def __init__(self, sd, index, dev, host_api, layout, out, sensed, outputs, inputs, volts_per_fs, amps_per_fs):
+    def __init__(self, sd, index, dev, host_api, layout, out, sensed, outputs, inputs, volts_per_fs, amps_per_fs,
+                 guard=(50.0, 25, 0.5)):
         self._sd, self._index = sd, index
         self.device = f"{dev['name']} ({host_api})"
         self.fs, self.block = float(layout.fs), int(layout.block)
@@ -210,6 +212,13 @@ class AudioBackend:
         self._out_scale, self._in_scale = 1.0 / volts_per_fs, amps_per_fs
         self._last = np.zeros(len(outputs))
         self._period_ns = self.block / self.fs * 1e9
+        # the device thread's guards (_audio_kernels.io_guard): silent inputs after ms, more than
+        # n xruns within a window of s; 0 switches either off
+        silence_ms, n_xruns, window_s = guard
+        self._silent_limit = math.ceil(silence_ms * 1e-3 * self.fs / self.block) if silence_ms > 0 else 0
+        w = max(1, round(window_s * self.fs / self.block))
+        self._xrun_bucket = (w, n_xruns, n_xruns * w) if n_xruns > 0 else (0, 0, 0)
+        self._guard_text = (silence_ms, n_xruns, window_s)
         self.snaps = Snapshots(RING, layout.n_channels, layout.n_sensed, self.block)
         self.ctl = np.zeros(K.N_CTL, dtype=np.int64)
         self._n_out = int(outputs.max()) + 1 if outputs.size else 1
@@ -288,6 +297,7 @@ class AudioBackend:
             K.frames_to_rows(indata, self._inputs, self._in_scale, self._sensed)
         st |= self._step()
         ctl[K.CLIPPED] += K.rows_to_frames(self._out, self._outputs, self._out_scale, outdata, self._last)
+        st |= K.io_guard(ctl, self._sensed, self._out, st, *self._lim, self.block)
         snaps = self.snaps
         k = int(ctl[K.DONE])
         slot = k % snaps.n
@@ -348,12 +358,16 @@ class AudioBackend:
         K.fade_frames(last, self._outputs, self._out_scale, fout)
         st, par, fade = np.zeros((3, 1)), np.ones((8, 1)), np.zeros(2, dtype=np.int64)
         K.limiter_shutdown(st, par, fade, self.block)
+        ctl = np.zeros(K.N_CTL, dtype=np.int64)
+        K.io_guard(ctl, np.zeros_like(self._sensed), np.zeros_like(self._out), 0, st, par, fade, self.block)
 
     def reset(self) -> None:
         """Zero the counters and the snapshot ring (the rig resets its own state)."""
         self.ctl[:] = 0
         self.ctl[K.FIRST_XRUN] = -1
         self.ctl[K.STOP_AT] = 2**62
+        self.ctl[K.XRUN_ADD], self.ctl[K.XRUN_LEAK], self.ctl[K.XRUN_CAP] = self._xrun_bucket
+        self.ctl[K.SILENT_LIMIT] = self._silent_limit
         self._error = None
         self._lost_ms = None
         self._last[:] = 0.0
@@ -547,8 +561,20 @@ class AudioBackend:
             "loss_detected_after_ms": self._lost_ms,
             "cfunc": self._cfunc is not None,
             "cfunc_note": self._cfunc_note,
-            "error": self._error,
+            "error": self._error or self._guard_error(),
         }
+
+    def _guard_error(self) -> str | None:
+        """What the device thread's guard (``_audio_kernels.io_guard``) stopped the run for."""
+        why = int(self.ctl[K.GUARD])
+        silence_ms, n_xruns, window_s = self._guard_text
+        if why == K.GUARD_SILENT:
+            return (f"every input sample exactly 0 for {silence_ms:g} ms while driving, after the inputs "
+                    "were live: nothing feeds them any more (the sense chain unplugged; under JACK, the "
+                    "plant's client gone)")
+        if why == K.GUARD_XRUNS:
+            return f"more than {n_xruns} xruns within {window_s:g} s ({int(sum(self.ctl[K.IN_UNDER:K.OUT_OVER + 1]))} in all)"
+        return None
 
     def close(self) -> None:
         """Stop and release the stream (and PortAudio with the last one); idempotent, never raises."""
