@@ -144,24 +144,21 @@ def test_no_xruns_at_block_64(audio_run):
                     "machine's scheduling")
 
 
-def test_killing_the_audio_server_ends_the_run(tmp_path):
-    """The audio server is the device: SIGKILL it mid-run, as if the interface were unplugged."""
-    from rtctl.safety import DEVICE_LOST
-    from rtctl.trace import TraceReader
-
+def run_and_kill(tmp_path, kill):
+    """A 20 s audio run against the emulator; ``kill(srv, emu)`` 0.5 s after the emulator
+    connected. Returns ``(returncode, stdout, stderr, seconds from the kill to the exit)``."""
     with JackServer(period=64) as srv:
         emu = EmulatorProcess(srv, SCENE, TIMING)
         try:
             assert emu.wait_for("waiting", 120), emu.out.seen
-            env = srv.env
             cmd = CLI + ["run", SCENE, "--json", "--no-plot", "--out", str(tmp_path / "run"),
                          *sets(TIMING + AUDIO + ["timing.duration=20"])]
-            proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            proc = subprocess.Popen(cmd, env=srv.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                     start_new_session=True)
             try:
                 assert emu.wait_for("ready", 120), emu.out.seen
                 time.sleep(0.5)
-                srv.kill()
+                kill(srv, emu)
                 t_kill = time.perf_counter()
                 out, err = proc.communicate(timeout=60)
                 t_exit = time.perf_counter()
@@ -172,13 +169,22 @@ def test_killing_the_audio_server_ends_the_run(tmp_path):
         finally:
             emu.stop()
     assert proc.returncode == 1, (proc.returncode, err)
+    assert "Traceback" not in err and "Assertion" not in err
+    return out, err, t_exit - t_kill
+
+
+def test_killing_the_audio_server_ends_the_run(tmp_path):
+    """The audio server is the device: SIGKILL it mid-run, as if the interface were unplugged."""
+    from rtctl.safety import DEVICE_LOST
+    from rtctl.trace import TraceReader
+
+    out, err, exit_s = run_and_kill(tmp_path, lambda srv, emu: srv.kill())
     lines = [x for x in err.splitlines() if x.startswith("rtctl:")]
     assert lines and "I/O device lost" in lines[0] and "system (JACK Audio Connection Kit) lost" in lines[0], err
-    assert "Traceback" not in err and "Assertion" not in err
     summary = json.loads(out)
     io = summary["io"]
     print(f"loss noticed {io['loss_detected_after_ms']:.1f} ms after the last callback; process exit "
-          f"{t_exit - t_kill:.2f} s after the kill")
+          f"{exit_s:.2f} s after the kill")
     assert io["loss_detected_after_ms"] < 100
     assert summary["duration_s"] < 10
     tr = TraceReader(tmp_path / "run" / "trace")
@@ -195,31 +201,9 @@ def test_killing_the_emulator_ends_the_run(tmp_path):
     from rtctl.safety import DEVICE_LOST
     from rtctl.trace import TraceReader
 
-    with JackServer(period=64) as srv:
-        emu = EmulatorProcess(srv, SCENE, TIMING)
-        try:
-            assert emu.wait_for("waiting", 120), emu.out.seen
-            cmd = CLI + ["run", SCENE, "--json", "--no-plot", "--out", str(tmp_path / "run"),
-                         *sets(TIMING + AUDIO + ["timing.duration=20"])]
-            proc = subprocess.Popen(cmd, env=srv.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                    start_new_session=True)
-            try:
-                assert emu.wait_for("ready", 120), emu.out.seen
-                time.sleep(0.5)
-                os.killpg(emu.proc.pid, signal.SIGKILL)
-                t_kill = time.perf_counter()
-                out, err = proc.communicate(timeout=60)
-                t_exit = time.perf_counter()
-            finally:
-                if proc.poll() is None:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait()
-        finally:
-            emu.stop()
-    assert proc.returncode == 1, (proc.returncode, err)
+    out, err, exit_s = run_and_kill(tmp_path, lambda srv, emu: os.killpg(emu.proc.pid, signal.SIGKILL))
     lines = [x for x in err.splitlines() if x.startswith("rtctl:")]
     assert lines and "I/O device lost: every input sample exactly 0" in lines[0], err
-    assert "Traceback" not in err
     summary = json.loads(out)
     assert summary["duration_s"] < 10
     tr = TraceReader(tmp_path / "run" / "trace")
@@ -231,7 +215,7 @@ def test_killing_the_emulator_ends_the_run(tmp_path):
     end = zero[zero >= lost[0]][0]  # the fade's last block
     ms = (end - live[-1]) * 64 / 48.0
     print(f"last live block {live[-1]}, fault at {lost[0]}, outputs at 0 V from block {end}: "
-          f"{ms:.1f} ms after the last live block; process exit {t_exit - t_kill:.2f} s after the kill")
+          f"{ms:.1f} ms after the last live block; process exit {exit_s:.2f} s after the kill")
     assert ms <= 100
     assert np.max(np.abs(drive[:, : 300 * 64])) > 10 and np.all(drive[:, -1] == 0.0)
 

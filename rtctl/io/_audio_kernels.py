@@ -103,6 +103,16 @@ def fade_frames(last, channel, scale, frames):
 
 
 @kernel
+def _any_nonzero(a):
+    """Whether any element of the 2-D ``a`` is not exactly 0 (stops at the first)."""
+    for r in range(a.shape[0]):
+        for i in range(a.shape[1]):
+            if a[r, i] != 0.0:
+                return True
+    return False
+
+
+@kernel
 def io_guard(ctl, sensed, out, xrun, state, params, fade, block):
     """The device thread's own faults, checked after every block's step; returns status bits.
 
@@ -129,27 +139,11 @@ def io_guard(ctl, sensed, out, xrun, state, params, fade, block):
             if ctl[GUARD] == 0:
                 ctl[GUARD] = GUARD_XRUNS
     if ctl[SILENT_LIMIT] > 0 and sensed.shape[0] > 0:
-        quiet = True
-        for r in range(sensed.shape[0]):
-            for i in range(sensed.shape[1]):
-                if sensed[r, i] != 0.0:
-                    quiet = False
-                    break
-            if not quiet:
-                break
-        if not quiet:
+        if _any_nonzero(sensed):
             ctl[LIVE] = 1
             ctl[SILENT] = 0
         elif ctl[LIVE] != 0:
-            driving = False
-            for r in range(out.shape[0]):
-                for i in range(out.shape[1]):
-                    if out[r, i] != 0.0:
-                        driving = True
-                        break
-                if driving:
-                    break
-            if driving:
+            if _any_nonzero(out):  # driving
                 ctl[SILENT] += 1
             if ctl[SILENT] >= ctl[SILENT_LIMIT]:
                 st |= DEVICE_LOST
