@@ -85,7 +85,7 @@ def test_audio_run_reaches_the_sim_amplitudes(audio_run):
     assert r["emu_code"] == 0, r["emu_err"]  # SIGTERM ends it cleanly
     io = r["audio"]["io"]
     assert io["device"] == "system (JACK Audio Connection Kit)" and io["blocks"] >= 1500, io
-    assert io["error"] is None and not r["audio"]["faults"]
+    assert io["error"] is None and not r["audio"]["faults"] and io["inputs_live"] is True
     sim, aud = TraceReader(r["tmp"] / "sim" / "trace"), TraceReader(r["tmp"] / "audio" / "trace")
     fs, n = 48000.0, 96000
     # the drive is the rig's own: identical sample for sample (schedules land at block 0 in both)

@@ -553,6 +553,7 @@ class AudioBackend:
             "xruns": sum(c[K.IN_UNDER:K.OUT_OVER + 1]),
             "first_xrun_block": c[K.FIRST_XRUN] if c[K.FIRST_XRUN] >= 0 else None,
             "late_blocks": c[K.LATE],
+            "inputs_live": bool(c[K.LIVE]) if self._n_in else None,
             "max_callback_gap_us": c[K.MAX_GAP] * 1e-3,
             "clipped_samples": c[K.CLIPPED],
             "odd_size_blocks": c[K.ODD],
