@@ -82,8 +82,10 @@ def _install_package_stamp() -> None:
         return
     user = [c for c in impl._locator_classes if "UserProvided" in c.__name__]
     rest = [c for c in impl._locator_classes if c not in user]
-    # A user's NUMBA_CACHE_DIR still wins; then ours (in-tree, else user-wide); then numba's.
-    impl._locator_classes = user + [stamped(b) for b in bases] + rest
+    # A user's NUMBA_CACHE_DIR still wins, stamped too (it once was not: after an edit of a callee,
+    # a kernel cached there ran the callee's old code); then ours (in-tree, else user-wide); then
+    # numba's own for code outside the package.
+    impl._locator_classes = [stamped(c) for c in user] + user + [stamped(b) for b in bases] + rest
 
 
 _install_package_stamp()
