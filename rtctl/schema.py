@@ -107,8 +107,8 @@ LIMITS = Table(
         "thermal_tau": Key("float", 20.0, "s", "thermal time constant", 1e-3, 1e5),
         "dc_offset": Key("float", 0.1, "", "largest running mean of a piezo's drive (depolarisation, creep), as a fraction of max_voltage; 1: no bound", 0.0, 1.0, open_lo=True, types=PIEZO_TYPES),
         "dc_tau": Key("float", 10.0, "s", "time constant of that running mean", 0.0, 1e4, open_lo=True, types=PIEZO_TYPES),
-        "duty": Key("float", 0.5, "", "largest heating duty of one SMA spring: running mean of (v / V_peak)^2 of its polarity (on/off drive at V_peak: the fraction of time on); 1: no bound", 0.0, 1.0, open_lo=True, types=("sma",)),
-        "duty_tau": Key("float", 2.0, "s", "time constant of that running mean", 0.0, 1e4, open_lo=True, types=("sma",)),
+        "duty": Key("float", 0.6, "", "largest heating duty of one SMA spring: running mean of (v / V_peak)^2 of its polarity (on/off drive at V_peak, or a pin command: the fraction of time on); 1: no bound", 0.0, 1.0, open_lo=True, types=("sma",)),
+        "duty_tau": Key("float", 5.0, "s", "time constant of that running mean", 0.0, 1e4, open_lo=True, types=("sma",)),
     },
     "final limiter: cannot be switched off; voltage (max_voltage), slew, current, temperature, DC offset (piezo), duty (SMA)",
 )

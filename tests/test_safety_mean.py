@@ -200,18 +200,19 @@ def run_json(capsys, tmp_path, scene, *sets):
 
 def test_a_scene_holding_an_sma_spring_runs_at_the_duty_bound(capsys, tmp_path):
     # a 0.1 Hz square holds channel 0's raising spring at 1.62 V ((1.62/2)^2 = 0.66 of full power)
-    # (the default 2 s mean: the other taxels' 1.5 Hz squares, 0.33 on average, stay below 0.5)
-    out = run_json(capsys, tmp_path, "sma-8x8", "timing.duration=4.0", "stimulus.tones.0.freq=0.1")
+    # (with a 1 s mean the other taxels' 1.5 Hz squares, 0.33 on average, peak at 0.38 < 0.6)
+    out = run_json(capsys, tmp_path, "sma-8x8", "timing.duration=4.0", "stimulus.tones.0.freq=0.1",
+                   "actuator.sma.limits.duty_tau=1.0")
     assert out["faults"] == [] and any("duty limited" in w for w in out["warnings"])
     limited = [c["limited"] for c in out["channels"]]
     assert limited[0] and not any(limited[1:]) and out["channels"][0]["limited_by"] == ["duty"]
     from rtctl.trace import TraceReader
 
     drive = TraceReader(tmp_path / "trace").signal("drive", 0)
-    # held at half power, 2 V / sqrt(2), from -tau ln(1 - 0.5 / 0.66) = 2.9 s on
+    # held at 0.6 of full power, 2 V sqrt(0.6), from -tau ln(1 - 0.6 / 0.656) = 2.46 s on
     # (the trace stores float32)
-    np.testing.assert_allclose(drive[: int(2.8 * FS)], 1.62, rtol=1e-7)
-    np.testing.assert_allclose(drive[int(3.0 * FS):int(3.9 * FS)], 2.0 / math.sqrt(2.0), rtol=1e-7)
+    np.testing.assert_allclose(drive[: int(2.4 * FS)], 1.62, rtol=1e-7)
+    np.testing.assert_allclose(drive[int(2.6 * FS):int(3.9 * FS)], 2.0 * math.sqrt(0.6), rtol=1e-7)
 
 
 def test_a_scene_with_a_dc_drive_on_a_bimorph_is_held_at_the_dc_bound(capsys, tmp_path):
