@@ -150,9 +150,10 @@ def _fault_message(rig, k, status, period) -> str:
     what = safety.describe(status & safety.FAULTS)
     if status & (safety.DEVICE_LOST | safety.XRUN_BURST):
         err = rig.device.stats().get("error") if hasattr(rig.device, "stats") else None
-        if err:
-            what = [f"I/O device lost: {err}" if "device lost" in w else f"audio xrun burst: {err}"
-                    if "xrun burst" in w else w for w in what]
+        if err:  # the backend's own words replace the generic name of its fault bit
+            own = {safety.STATUS_NAMES[safety.DEVICE_LOST]: f"I/O device lost: {err}",
+                   safety.STATUS_NAMES[safety.XRUN_BURST]: f"audio xrun burst: {err}"}
+            what = [own.get(w, w) for w in what]
     return f"at {k * period:.4f} s: " + "; ".join(what) + "; outputs faded to 0 V"
 
 

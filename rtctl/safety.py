@@ -113,8 +113,7 @@ def _bound_mean(row, v0, dv, vmax, sign, kind, scale, h_cmd, target):
     bisection's 64. The end kept is the lower one, whose measure is at most the target. A pin
     command (``MEAN_DUTY_CMD``) is on or off, its measure a step: the block's commands of that
     polarity are switched off (ceiling 0), which holds the commanded time to the bound block by
-    block. If even
-    the lowest ceiling (``-vmax`` for a DC bound, 0 for a duty bound) exceeds the target,
+    block. If even the lowest ceiling (``-vmax`` for a DC bound, 0 for a duty bound) exceeds the target,
     because the slope bound forbids leaving the previous output fast enough, the lowest is used.
     """
     lo = -vmax if kind == MEAN_DC else 0.0
