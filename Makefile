@@ -6,7 +6,10 @@ STAMP := $(VENV)/.rtctl-installed
 
 .PHONY: demo test bench docs clean
 
-$(STAMP): pyproject.toml
+# Set-up, once per pyproject change: the system libraries of the audio path (tools/sysdeps.sh
+# installs them where it can, else prints the command), then the package with its test extras.
+$(STAMP): pyproject.toml tools/sysdeps.sh
+	@bash tools/sysdeps.sh
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
 	@touch $(STAMP)

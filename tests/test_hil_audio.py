@@ -21,13 +21,14 @@ import numpy as np
 import pytest
 
 from hil_jack import CLI, JACKD, EmulatorProcess, JackServer, xrun_causes
+from optional import require
 
 pytestmark = pytest.mark.hil
 
 if JACKD is None:
     pytest.skip("jackd not installed (Debian: apt-get install jackd2): audio HIL tests skipped",
                 allow_module_level=True)
-pytest.importorskip("jack", reason="JACK-Client not installed: audio HIL tests skipped")
+require("jack", "sounddevice")  # the emulator's JACK client, the run's PortAudio stream
 
 SCENE = "line-bimorph-5"
 TIMING = ["timing.block=64", "timing.duration=2.0"]
