@@ -30,9 +30,12 @@ else
   exit 0
 fi
 echo "setup: installing $want with apt-get (audio backend and its hardware-in-the-loop tests)"
-export DEBIAN_FRONTEND=noninteractive
-if ! { "${sudo[@]}" apt-get update -qq >/dev/null && \
-       "${sudo[@]}" apt-get install -y -qq --no-install-recommends $want >/dev/null; }; then
+log=$(mktemp)
+if ! { "${sudo[@]}" env DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+       "${sudo[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $want; } \
+     >"$log" 2>&1; then
+  tail -n 5 "$log" | sed 's/^/  apt-get: /'
   echo "setup: apt-get install $want failed; the audio HIL tests will skip (see the test summary)"
 fi
+rm -f "$log"
 exit 0
