@@ -25,7 +25,10 @@ from .errors import RtctlError  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2): returned like any command's status
+        return _exit_status(e)
     debug = args.debug or bool(os.environ.get("RTCTL_DEBUG"))
     try:
         return args.func(args)
@@ -64,7 +67,10 @@ def _parser() -> argparse.ArgumentParser:
 
     r = scene_cmd("run", "run the loop (default backend: simulated rig)", _run)
     r.add_argument("--duration", type=float, metavar="S", help="override timing.duration")
-    r.add_argument("--out", metavar="DIR", help="output directory (default out/SCENE_NAME)")
+    r.add_argument("--out", metavar="DIR",
+                   help="output directory (default out/SCENE_NAME); a run replaces the trace/, summary.json "
+                        "and plot.png of an earlier run there (with --no-plot its plot.png is removed) and "
+                        "leaves every other file alone")
     r.add_argument("--realtime", action="store_true", help="pace blocks to the wall clock and count deadline misses")
     r.add_argument("--no-plot", action="store_true", help="skip plot.png")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -77,18 +83,23 @@ def _parser() -> argparse.ArgumentParser:
     scene_cmd("model", "actuator model facts: natural frequencies, static values, capacitance", _model)
 
     # Tools living in their own subpackages parse their own options (``main(argv)``).
-    for name, help_, target in (
-        ("selfsense", "transfer-matrix admittance plots and the observer accuracy sweep (SCENE ...)",
-         "rtctl.selfsense.cli:main"),
-        ("render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main"),
-        ("bench", "benchmarks: `bench numerics` (work-precision, stability), `bench render`",
-         None),
-        ("emulate", "run a scene's simulated display as a device: `emulate audio SCENE` (a JACK client) "
-         "or `emulate serial SCENE` (a pin controller behind a pseudo-terminal)", None),
-    ):
-        t = sub.add_parser(name, help=help_, description=help_, add_help=False)
-        t.add_argument("rest", nargs=argparse.REMAINDER)
-        t.set_defaults(func=_delegate, target=target, tool=name)
+    _tool(sub, "selfsense", "transfer-matrix admittance plots and the observer accuracy sweep (SCENE ...)",
+          "rtctl.selfsense.cli:main")
+    _tool(sub, "render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main")
+    b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`",
+                       description="benchmarks (the loop's own speed: make bench)")
+    bsub = b.add_subparsers(dest="bench", required=True)
+    _tool(bsub, "numerics", "work-precision report and the stability cases", "rtctl.numerics.cli:main")
+    _tool(bsub, "render", "HIA update and preprocessing times per rendering method", "rtctl.render.bench:main_bench")
+    _name_choices(bsub)
+    e = sub.add_parser("emulate", help="run a scene's simulated display as a device: `emulate audio SCENE` "
+                       "(a JACK client) or `emulate serial SCENE` (a pin controller behind a pseudo-terminal)",
+                       description="run a scene's simulated display as a device")
+    esub = e.add_subparsers(dest="emulator", required=True)
+    _tool(esub, "audio", "the scene's simulated plant as a JACK client (SCENE ...)", "rtctl.io.emulate_audio:main")
+    _tool(esub, "serial", "a Dot/SMA pin controller (firmware + plant) behind a pseudo-terminal (SCENE ...)",
+          "rtctl.io.emulate_serial:main")
+    _name_choices(esub)
     d = sub.add_parser("devices", help="audio, serial and DAQ devices this machine has",
                        description="audio, serial and DAQ devices this machine has")
     d.add_argument("--json", action="store_true", help="print one JSON object")
@@ -96,23 +107,39 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-BENCHES = {"numerics": "rtctl.numerics.cli:main", "render": "rtctl.render.bench:main_bench"}
-EMULATORS = {"audio": "rtctl.io.emulate_audio:main", "serial": "rtctl.io.emulate_serial:main"}
+def _name_choices(sub) -> None:
+    """Show the subcommands as ``{a,b}`` in the usage and in "the following arguments are
+    required" (argparse names a metavar-less subcommand slot by its dest there)."""
+    sub.metavar = "{" + ",".join(sub.choices) + "}"
+
+
+def _tool(sub, name: str, help_: str, target: str) -> None:
+    """A command whose words all go to ``target`` (``module:function`` taking ``argv``), which
+    parses them, --help included, with a parser of its own."""
+    # Its only prefix character is one no word starts with, so every word, a leading --help or
+    # --json too, lands in ``rest`` for the tool; with "-" argparse would take a leading option
+    # for one of this parser's, find none, and reject it before the tool ever saw it.
+    t = sub.add_parser(name, help=help_, description=help_, add_help=False, prefix_chars="\0")
+    t.add_argument("rest", nargs=argparse.REMAINDER)
+    t.set_defaults(func=_delegate, target=target)
 
 
 def _delegate(args) -> int:
     import importlib
 
-    rest, target = list(args.rest), args.target
-    if target is None:  # bench / emulate: the first word picks the tool
-        table, hint = ((BENCHES, "  (loop speed: make bench)") if args.tool == "bench"
-                       else (EMULATORS, " SCENE [--set KEY=VALUE ...]"))
-        if not rest or rest[0] not in table:
-            print(f"usage: rtctl {args.tool} {{{','.join(table)}}} [options]{hint}", file=sys.stderr)
-            return 2
-        target = table[rest.pop(0)]
-    module, func = target.split(":")
-    return int(getattr(importlib.import_module(module), func)(rest) or 0)
+    module, func = args.target.split(":")
+    try:
+        return int(getattr(importlib.import_module(module), func)(list(args.rest)) or 0)
+    except SystemExit as e:  # the tool's own argparse: --help or a usage error
+        return _exit_status(e)
+
+
+def _exit_status(e: SystemExit) -> int:
+    """The status the interpreter would exit with for ``e``."""
+    if e.code is None or isinstance(e.code, int):
+        return e.code or 0
+    print(e.code, file=sys.stderr)
+    return 1
 
 
 def _load(args):
@@ -211,6 +238,10 @@ def _run(args) -> int:
     for msg in result.summary["faults"]:
         print(f"rtctl: fault: {msg}", file=sys.stderr)
     if result.interrupted:
+        s = result.summary
+        blocks = round(s["duration_s"] * s["fs"] / s["block"])
+        print(f"rtctl: interrupted after {s['duration_s']:.2f} s ({blocks} blocks); trace and summary in {out}",
+              file=sys.stderr)
         return 130
     return 1 if result.summary["faults"] else 0
 

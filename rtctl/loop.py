@@ -72,7 +72,8 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     ----------
     scene : rtctl.scene.Scene
     out_dir : str or Path, optional
-        Where ``trace/``, ``summary.json`` and ``plot.png`` go; nothing is written without it.
+        Where ``trace/``, ``summary.json`` and ``plot.png`` go, replacing an earlier run's (its
+        plot.png is removed even when this run writes none); nothing is written without it.
     realtime : bool
         Pace blocks to the wall clock and count deadline misses; otherwise run as fast as
         possible and report the real-time factor.
@@ -89,6 +90,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     writer = None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
+        _remove_earlier_run(out)
         writer = TraceWriter(out / "trace", rig.trace_signals(), fs, block, rig.channel_names,
                              meta={"scene": scene.to_dict(), "source": scene.source,
                                    "overrides": list(scene.overrides), "sensed_rows": rig.sensed_names})
@@ -144,6 +146,18 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
 
             make_plot(summary, reader, out / "plot.png", run_blocks)
     return RunResult(summary, interrupted, out)
+
+
+#: The files a run writes into its ``out_dir`` besides ``trace/`` (which TraceWriter replaces).
+RUN_FILES = ("summary.json", "plot.png")
+
+
+def _remove_earlier_run(out: Path) -> None:
+    """Remove an earlier run's summary and plot from ``out``: otherwise a run without a plot
+    (``--no-plot``, or one that ends before it) leaves the old plot.png, perhaps of another
+    scene, beside its own summary. Only the names a run writes go; other files stay."""
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
 
 
 def _fault_message(rig, k, status, period) -> str:

@@ -8,6 +8,10 @@ a beat pair it is the sum of both tones' amplitudes, the peak of the envelope. F
 pulse tone (binary pins, SMA taxels) the fundamental says little about the motion: the amplitude
 is half the peak-to-peak stroke over the whole periods of the analysis window; so it is for a
 channel driven by a rendered stimulus (no tone), over the analysis window.
+
+A pin between end stops (solenoid, Dot) moves its full stroke or not at all: it has no amplitude
+target, so its target and error are None, as its settle time is. Nothing is felt without a
+finger on the display (``finger.contact = false``): every channel's ``felt`` is then False.
 """
 
 from __future__ import annotations
@@ -17,6 +21,10 @@ import math
 import numpy as np
 
 SETTLE_BAND = 0.05  # settled once every later envelope estimate is within 5 % of the final one
+
+#: Actuator types whose pins travel between two end stops: the stroke is set by the stops, not
+#: by the drive amplitude, so a perception-margin target (and an error against it) means nothing.
+END_STOP_TYPES = ("solenoid", "dot")
 
 
 def fit_amplitudes(x: np.ndarray, t: np.ndarray, freqs) -> np.ndarray:
@@ -70,6 +78,9 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
     t = np.arange(n) / fs
     has_tip = "tip_um" in reader.units
     n_b = n // block if block else 0
+    # finger.contact is one switch for the whole display: each group's direction picks the
+    # finger.lateral or finger.normal load, but without contact no group touches a finger.
+    contact = bool(rig.scene.finger.contact)
     rows = []
     for ch in range(rig.n_channels):
         drive = reader.signal("drive", ch)[:n]
@@ -77,17 +88,21 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
         tones = [tn for tn in rig.tones if tn.channel == ch]
         freqs = [f for tn in tones for f in tn.freqs]
         main = tones[0] if tones else None
+        stops = rig.scene.group(rig.channel_groups[ch]).type in END_STOP_TYPES
+        target_m = main.target_m if main is not None and not stops else None
         row = {
             "name": rig.channel_names[ch],
             "group": rig.channel_groups[ch],
             "receptor": main.receptor if main else None,
             "freq_hz": main.freq if main else None,
-            "target_um": _um(main.target_m) if main else None,
+            "target_um": _um(target_m),
             "threshold_um": _um(main.threshold_m) if main else None,
             "true_um": None,
             "estimated_um": None,
             "error_pct": None,
             "settle_ms": None,
+            "felt": None,
+            "contact": contact,
             "v_peak": float(np.max(np.abs(drive))) if n else 0.0,
             "limited": bool(rig.limiter.counts[:, ch].sum() > 0),
             "limited_by": limited_by(rig.limiter, ch),
@@ -108,20 +123,32 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             else:
                 amp = float(fit_amplitudes(tip[m], t[m], freqs).sum()) if np.all(np.isfinite(tip)) else math.nan
             if not math.isfinite(amp):  # a plant fault left NaN in the truth: nothing to report
+                _felt(row, contact)
                 rows.append(row)
                 continue
             row["true_um"] = amp
-            if main.target_m and math.isfinite(main.target_m):
-                row["error_pct"] = 100.0 * (amp * 1e-6 - main.target_m) / main.target_m
+            if target_m and math.isfinite(target_m):
+                row["error_pct"] = 100.0 * (amp * 1e-6 - target_m) / target_m
             if main.shape == "sine":
                 st = settle_time(tip, t, freqs, min(tn.start for tn in tones), amp)
                 row["settle_ms"] = None if st is None else 1e3 * st
-        _estimate(row, reader, ch, n_b, block / fs, freqs, main)
+        _estimate(row, reader, ch, n_b, block / fs, freqs, target_m)
+        _felt(row, contact)
         rows.append(row)
     return rows
 
 
-def _estimate(row, reader, ch, n_blocks, period, freqs, main) -> None:
+def _felt(row, contact: bool) -> None:
+    """``row["felt"]``: False for every channel without a finger on the display (a tip moving in
+    air is felt by no one, however far it moves); otherwise whether the true amplitude reaches
+    the threshold, None without either."""
+    if not contact:
+        row["felt"] = False
+    elif row["true_um"] is not None and row["threshold_um"] is not None:
+        row["felt"] = row["true_um"] >= row["threshold_um"]
+
+
+def _estimate(row, reader, ch, n_blocks, period, freqs, target_m) -> None:
     """The observer's amplitude (median of its per-block estimate over the analysis window)
     into ``row``, with its error against the truth where a simulation knows it and, on
     hardware, the error against the target from the estimate."""
@@ -136,8 +163,8 @@ def _estimate(row, reader, ch, n_blocks, period, freqs, main) -> None:
     row["estimated_um"] = float(np.median(seg))
     if row["true_um"]:
         row["estimate_error_pct"] = 100.0 * (row["estimated_um"] / row["true_um"] - 1.0)
-    elif main is not None and main.target_m and math.isfinite(main.target_m):
-        row["error_pct"] = 100.0 * (row["estimated_um"] * 1e-6 - main.target_m) / main.target_m
+    elif target_m and math.isfinite(target_m):
+        row["error_pct"] = 100.0 * (row["estimated_um"] * 1e-6 - target_m) / target_m
 
 
 def _um(x: float) -> float | None:
@@ -159,9 +186,7 @@ def print_table(summary: dict) -> None:
     print(head)
     print("-" * len(head))
     for r in summary["channels"]:
-        felt = "-"
-        if r["true_um"] is not None and r["threshold_um"] is not None:
-            felt = "yes" if r["true_um"] >= r["threshold_um"] else "NO"
+        felt = {None: "-", True: "yes", False: "NO" if r["contact"] else "NO (no contact)"}[r["felt"]]
         print(f"{r['name']:<12}{(r['receptor'] or '-'):<10}{_fmt(r['freq_hz'], '9.1f')}{r['v_peak']:8.1f}"
               f"{_fmt(r['true_um'], '10.3g')}{_fmt(r['threshold_um'], '10.3g')}{_fmt(r['target_um'], '10.3g')}"
               f"{_fmt(r['error_pct'], '9.1f')}{_fmt(r['settle_ms'], '10.0f')}  {felt}"
@@ -190,29 +215,46 @@ def _envelope(t: np.ndarray, x: np.ndarray, points: int = 20000):
     return tt, xx
 
 
+def plot_channels(rows: list[dict], max_rows: int = 8) -> tuple[list[int], str]:
+    """The channels plot.png gives a panel, in panel order, and the caption that says so.
+
+    Driven channels (a drive other than 0 V in the run, or a stimulus tone) come first, in
+    channel order, then idle ones fill the panels left. The caption is "" when every channel
+    has a panel, else e.g. "8 of 9 channels shown (driven first)".
+    """
+    if len(rows) <= max_rows:
+        return list(range(len(rows))), ""
+    driven = [r["v_peak"] > 0 or r["freq_hz"] is not None for r in rows]
+    order = [i for i, d in enumerate(driven) if d] + [i for i, d in enumerate(driven) if not d]
+    chosen = order[:max_rows]
+    return chosen, f"{len(chosen)} of {len(rows)} channels shown (driven first)"
+
+
 def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> None:
-    """plot.png: drive voltage and true tip displacement per channel against the threshold and
-    target lines, and a bar chart of every channel's amplitude against its threshold."""
+    """plot.png: drive voltage and true tip displacement against the threshold and target lines
+    for up to ``max_rows`` channels (:func:`plot_channels`), and a bar chart of every channel's
+    amplitude against its threshold."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     rows = summary["channels"]
-    shown = rows[:max_rows]
+    chosen, caption = plot_channels(rows, max_rows)
+    shown = [rows[ch] for ch in chosen]
     n = n_run_blocks * reader.block
     t = reader.time()[:n]
     has_tip = "tip_um" in reader.units
     fig = plt.figure(figsize=(11, 2.0 * len(shown) + 3.2), layout="constrained")
     gs = fig.add_gridspec(len(shown) + 1, 2, height_ratios=[1] * len(shown) + [1.6])
-    for i, r in enumerate(shown):
+    for i, (ch, r) in enumerate(zip(chosen, shown)):
         ax = fig.add_subplot(gs[i, 0])
-        ax.plot(*_envelope(t, reader.signal("drive", i)[:n]), lw=0.6, color="C0")
+        ax.plot(*_envelope(t, reader.signal("drive", ch)[:n]), lw=0.6, color="C0")
         ax.set_ylabel("drive V")
         ax.set_title(f"{r['name']}  {_fmt(r['freq_hz'], '.0f')} Hz  {r['receptor'] or ''}", fontsize=9, loc="left")
         if has_tip:
             bx = fig.add_subplot(gs[i, 1], sharex=ax)
-            bx.plot(*_envelope(t, reader.signal("tip_um", i)[:n]), lw=0.6, color="C1", label="true tip")
+            bx.plot(*_envelope(t, reader.signal("tip_um", ch)[:n]), lw=0.6, color="C1", label="true tip")
             for key, style, label in (("threshold_um", "--", "threshold"), ("target_um", ":", "target")):
                 if r[key] is not None:
                     bx.axhline(r[key], ls=style, color="k", lw=0.8, label=label)
@@ -231,6 +273,7 @@ def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> N
     cx.set_xticks(x, [f"{r['name']}\n{r['receptor'] or ''}" for r in rows], fontsize=7)
     cx.set_ylabel("amplitude um (log)")
     cx.legend(fontsize=8)
-    fig.suptitle(f"{summary['scene']}: true tip amplitude against the perception thresholds", fontsize=11)
+    fig.suptitle(f"{summary['scene']}: true tip amplitude against the perception thresholds"
+                 + (f"\n{caption}" if caption else ""), fontsize=11)
     fig.savefig(path, dpi=90)
     plt.close(fig)

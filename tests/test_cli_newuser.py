@@ -1,0 +1,230 @@
+"""The command line as a new user meets it: --help everywhere, what the run report and plot say
+about binary pins, idle channels and a finger that touches nothing, a reused --out, Ctrl-C."""
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from rtctl.cli import _parser, main
+
+
+def _call(args):
+    """``main(args)`` as the shell sees it: exit status (returned or raised), stdout, stderr."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(list(args))
+        except SystemExit as e:
+            code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    return code, out.getvalue(), err.getvalue()
+
+
+def _command_paths(parser, path=()):
+    """Every command of the parser tree, subcommands of subcommands included."""
+    yield path
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _command_paths(sub, path + (name,))
+
+
+PATHS = list(_command_paths(_parser()))
+
+
+def _required_positionals(usage: str, prog: str) -> list[str]:
+    """The words of a usage text outside [...] after the program name: what must be given."""
+    body = " ".join(usage.split())[len("usage: ") + len(prog):]
+    while True:
+        stripped = re.sub(r"\[[^\[\]]*\]", "", body)
+        if stripped == body:
+            break
+        body = stripped
+    return [w for w in body.split() if w != "..."]
+
+
+def test_the_walk_sees_the_nested_tools():
+    assert {("run",), ("render",), ("selfsense",), ("emulate",), ("bench",)} <= set(PATHS)
+    assert {("bench", "numerics"), ("bench", "render"), ("emulate", "audio"), ("emulate", "serial")} <= set(PATHS)
+
+
+@pytest.mark.parametrize("path", PATHS, ids=lambda p: " ".join(p) or "rtctl")
+def test_help_and_missing_argument_at_every_level(path):
+    prog = " ".join(("rtctl",) + path)
+    for flag in ("--help", "-h"):
+        code, out, err = _call([*path, flag])
+        assert code == 0, (flag, err)
+        assert out.startswith(f"usage: {prog}"), (flag, out[:200], err)
+        assert "Traceback" not in err
+    usage = out.split("\n\n")[0]
+    needed = _required_positionals(usage, prog)
+    if not needed:  # e.g. `rtctl scenes`: nothing can be missing
+        return
+    code, out, err = _call(path)
+    assert code == 2, (needed, out, err)
+    assert err.startswith(f"usage: {prog}"), err
+    lines = err.strip().splitlines()
+    errors = [ln for ln in lines if ": error:" in ln]
+    assert errors == [lines[-1]] and lines[-1].startswith(f"{prog}: error: "), err
+    assert "required" in lines[-1] and "Traceback" not in err
+
+
+@pytest.mark.parametrize("args, words", [
+    (["selfsense", "--json", "no-such-scene"], ["no-such-scene", "no such scene"]),
+    (["render", "--method", "roi", "/no/such.png"], ["/no/such.png", "no such file"]),
+], ids=["selfsense", "render"])
+def test_tool_options_before_positionals_reach_the_tool(args, words):
+    code, _, err = _call(args)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and re.match(r"rtctl( \w+)?: error: ", lines[0]), err
+    for w in words:
+        assert w in lines[0]
+
+
+# --- one solenoid-3x3 run shared by the report tests ---------------------------------------------
+
+@pytest.fixture(scope="module")
+def solenoid_run(tmp_path_factory):
+    """``rtctl run solenoid-3x3`` with plot.png, the figure that was saved, the printed table."""
+    import matplotlib.figure
+
+    out_dir = tmp_path_factory.mktemp("solenoid")
+    saved = []
+    original = matplotlib.figure.Figure.savefig
+
+    def capture(self, *a, **k):
+        saved.append(self)
+        return original(self, *a, **k)
+
+    matplotlib.figure.Figure.savefig = capture
+    try:
+        code, out, err = _call(["run", "solenoid-3x3", "--duration", "0.2", "--out", str(out_dir), "--quiet"])
+    finally:
+        matplotlib.figure.Figure.savefig = original
+    assert code == 0, err
+    summary = json.loads((out_dir / "summary.json").read_text())
+    return {"dir": out_dir, "summary": summary, "figures": saved, "table": out}
+
+
+def test_plot_shows_the_driven_pins_first_and_says_how_many(solenoid_run):
+    (fig,) = solenoid_run["figures"]  # the figure plot.png was saved from
+    titles = [ax.get_title(loc="left") for ax in fig.axes]
+    panels = [t.split()[0] for t in titles if t]
+    assert panels[:3] == ["pins.0", "pins.4", "pins.8"] and len(panels) == 8, panels
+    assert "340 Hz" in titles[[t.split()[0] if t else "" for t in titles].index("pins.8")]
+    assert "8 of 9 channels shown (driven first)" in fig.get_suptitle()
+    assert (solenoid_run["dir"] / "plot.png").stat().st_size > 10_000
+    from rtctl.report import plot_channels
+
+    rows = solenoid_run["summary"]["channels"]
+    assert len(rows) == 9
+    chosen, caption = plot_channels(rows)
+    assert len(chosen) == 8 and 8 in chosen  # the 340 Hz pin
+    assert chosen[:3] == [0, 4, 8]  # driven first, the idle pins after
+    assert caption == "8 of 9 channels shown (driven first)"
+
+
+def test_plot_caption_is_empty_when_every_channel_fits():
+    from rtctl.report import plot_channels
+
+    rows = [{"v_peak": v, "freq_hz": None} for v in (0.0, 3.0, 0.0)]
+    assert plot_channels(rows) == ([0, 1, 2], "")
+
+
+def test_end_stop_pins_have_no_amplitude_target(solenoid_run):
+    rows = {r["name"]: r for r in solenoid_run["summary"]["channels"]}
+    for name in ("pins.0", "pins.4", "pins.8"):
+        r = rows[name]
+        assert r["threshold_um"] is not None and r["true_um"] > 50  # driven into the stops
+        assert r["target_um"] is None and r["error_pct"] is None, r
+    table = {ln.split()[0]: ln.split() for ln in solenoid_run["table"].splitlines() if ln.startswith("pins.")}
+    # channel receptor freq V-peak true thresh target error settle felt
+    for name in ("pins.0", "pins.4", "pins.8"):
+        assert table[name][6:9] == ["-", "-", "-"], table[name]
+        assert table[name][9] == "yes"
+
+
+def _run_json(tmp_path, scene, *extra):
+    code, out, err = _call(["run", scene, "--duration", "0.2", "--out", str(tmp_path), "--no-plot", "--quiet", *extra])
+    assert code == 0, err
+    return json.loads((tmp_path / "summary.json").read_text()), out
+
+
+def test_nothing_is_felt_without_contact(tmp_path):
+    # bimodal-4x4 has a normal and a lateral group: finger.contact is one switch for both
+    s, table = _run_json(tmp_path / "free", "bimodal-4x4", "--set", "finger.contact=false")
+    rows = s["channels"]
+    assert {r["group"] for r in rows} == {"normal", "lateral"}
+    driven = [r for r in rows if r["threshold_um"] is not None]
+    assert {r["group"] for r in driven} == {"normal", "lateral"}
+    assert any(r["true_um"] >= r["threshold_um"] for r in driven)  # the tips do move that far
+    felt = {ln.split()[0]: ln.split()[9] for ln in table.splitlines() if ln.split() and ln.split()[0] in
+            {r["name"] for r in driven}}
+    assert set(felt.values()) == {"NO"}, felt
+    assert all(r["felt"] is False for r in rows)
+    s, _ = _run_json(tmp_path / "touching", "bimodal-4x4")
+    felt = {r["name"]: r["felt"] for r in s["channels"] if r["threshold_um"] is not None}
+    assert felt and all(felt.values()), felt  # with contact the same channels are felt
+
+
+def test_a_run_into_an_earlier_runs_out_leaves_none_of_its_files(tmp_path):
+    code, _, err = _call(["run", "solenoid-3x3", "--duration", "0.1", "--out", str(tmp_path), "--quiet"])
+    assert code == 0, err
+    assert (tmp_path / "plot.png").exists()
+    (tmp_path / "notes.txt").write_text("mine")
+    s, _ = _run_json(tmp_path, "line-bimorph-5")
+    assert s["scene"] == "line-bimorph-5"
+    assert not (tmp_path / "plot.png").exists()  # the solenoid plot is gone, not left beside the new summary
+    assert (tmp_path / "notes.txt").read_text() == "mine"  # files a run never writes are left alone
+    from rtctl.trace import TraceReader
+
+    assert TraceReader(tmp_path / "trace").layout["meta"]["scene"]["scene"]["name"] == "line-bimorph-5"
+    code, help_, _ = _call(["run", "--help"])
+    assert "plot.png" in " ".join(help_.split()), help_
+
+
+def test_ctrl_c_says_how_long_the_run_went_and_where_its_trace_is(tmp_path):
+    out_dir = tmp_path / "x"
+    # a shell that started this test in the background may have left SIGINT ignored: the child
+    # must get the default disposition for Python to turn SIGINT into KeyboardInterrupt
+    p = subprocess.Popen([sys.executable, "-m", "rtctl.cli", "run", "line-bimorph-5", "--duration", "30",
+                          "--realtime", "--no-plot", "--quiet", "--out", str(out_dir)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        blocks_file = out_dir / "trace" / "blocks.bin"
+        t0 = time.monotonic()
+        while not (blocks_file.exists() and blocks_file.stat().st_size > 0):
+            assert p.poll() is None, p.communicate()
+            assert time.monotonic() - t0 < 180, "the run never started writing its trace"
+            time.sleep(0.05)
+        time.sleep(0.5)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert p.returncode == 130, err
+    m = re.search(r"^rtctl: interrupted after ([0-9.]+) s \((\d+) blocks\); trace and summary in (.+)$", err, re.MULTILINE)
+    assert m, err
+    assert "Traceback" not in err
+    s = json.loads((out_dir / "summary.json").read_text())
+    blocks = round(s["duration_s"] * s["fs"] / s["block"])
+    assert s["interrupted"] is True
+    assert 0 < blocks < 30 * s["fs"] / s["block"]
+    assert int(m.group(2)) == blocks
+    assert float(m.group(1)) == pytest.approx(s["duration_s"], abs=0.006)
+    assert os.path.samefile(m.group(3), out_dir)
+    from rtctl.trace import TraceReader
+
+    assert TraceReader(out_dir / "trace").n_blocks > blocks  # every run block, then the fade
