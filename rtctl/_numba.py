@@ -1,24 +1,54 @@
-"""Numba flags in one place (as stumpy's ``config.py``).
+"""Numba flags in one place (as stumpy's ``config.py``), and the package stamp of cached kernels.
 
 ``FASTMATH`` allows reassociation, contraction and approximate functions so loops vectorize,
 but *not* ``nnan``/``ninf``: NaN and Inf checks must keep working in every kernel, because
 the safety limiter relies on them before anything reaches an amplifier.
+
+**Package stamp.** Numba's cache checks only the source file of the cached function itself, yet
+a cached kernel has its callees (from other files) compiled into it: after an edit or an upgrade
+that touches only a callee, the caller would load stale machine code -- with changed array
+layouts, that is a segfault, not a slow start. So each kernel of this package gets a cache of
+its own whose freshness stamp is :func:`package_stamp` (every ``.py`` file of the package):
+any change recompiles every kernel. That cache is built from numba's internal classes
+(``numba.core.caching``); if they are missing or not shaped as expected, the kernel runs
+**uncached** -- compiled in each process, never loaded from a cache that might be stale -- and
+:data:`CACHE_NOTE` says why. Numba's own classes are left as they are: other code in the
+process caches the way numba does.
+
+Kernels outside the package -- the modules that :mod:`rtctl._codegen` generates into a cache
+directory -- are cached by numba's default locators, keyed by their own file: their file name
+hashes their source, which carries the package stamp, so a changed package writes a new module
+with a cache of its own.
 """
+
+from __future__ import annotations
 
 import functools
 import hashlib
+import inspect
 from pathlib import Path
 
 from numba import njit
+
+__all__ = ["kernel", "kernel_exact", "package_stamp", "FASTMATH", "TINY", "CACHE_NOTE"]
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 
 FASTMATH = frozenset({"nsz", "arcp", "contract", "afn", "reassoc"})
 
+# Smallest magnitude a recursive state keeps. Subnormal floats (< 2.2e-308) make kernels ~100x
+# slower once states decay after silence; anything below 1e-200 is zero for every SI quantity
+# we carry (metres, amperes, volts, newtons), so recursive updates flush below this.
+TINY = 1e-200
+
+#: Why rtctl kernels run uncached, or None while every kernel is cached under the package
+#: stamp. Read it as ``rtctl._numba.CACHE_NOTE`` (it is set when a kernel is decorated).
+CACHE_NOTE: str | None = None
+
 
 def kernel(fn):
     """Compile ``fn`` as a real-time kernel: cached, GIL-free, the house fastmath set."""
-    return njit(cache=True, nogil=True, fastmath=set(FASTMATH))(fn)
+    return _cached(njit(nogil=True, fastmath=set(FASTMATH))(fn))
 
 
 def kernel_exact(fn):
@@ -27,24 +57,14 @@ def kernel_exact(fn):
     For kernels whose result must not depend on reassociation, e.g. phase accumulators
     checked to 1e-9 over an hour of samples.
     """
-    return njit(cache=True, nogil=True)(fn)
-
-
-# Smallest magnitude a recursive state keeps. Subnormal floats (< 2.2e-308) make kernels ~100x
-# slower once states decay after silence; anything below 1e-200 is zero for every SI quantity
-# we carry (metres, amperes, volts, newtons), so recursive updates flush below this.
-TINY = 1e-200
+    return _cached(njit(nogil=True)(fn))
 
 
 @functools.lru_cache(maxsize=None)
 def package_stamp(root: Path = PACKAGE_DIR) -> bytes:
     """SHA-256 over every ``.py`` file of the package (path and content).
 
-    Numba's cache checks only the source file of the cached function itself, yet a cached
-    kernel has its callees (from other files) compiled into it: after an edit or an upgrade
-    that touches only a callee, the caller would load stale machine code -- with changed array
-    layouts, that is a segfault, not a slow start. rtctl's kernels are stamped with the whole
-    package instead, so any change recompiles them.
+    The freshness stamp of every cached kernel of the package (see the module docstring).
     """
     h = hashlib.sha256()
     for f in sorted(root.rglob("*.py")):
@@ -53,39 +73,85 @@ def package_stamp(root: Path = PACKAGE_DIR) -> bytes:
     return h.digest()
 
 
-def _install_package_stamp() -> None:
+def _note(reason: str) -> None:
+    global CACHE_NOTE
+    if CACHE_NOTE is None:
+        CACHE_NOTE = f"rtctl kernels run uncached (compiled in every process): {reason}"
+
+
+def _in_package(py_func) -> bool:
     try:
-        from numba.core import caching
-    except ImportError:  # pragma: no cover - numba reorganized its internals
-        return
+        Path(inspect.getfile(py_func)).resolve().relative_to(PACKAGE_DIR)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _cached(disp):
+    """Give the dispatcher ``disp`` (compiled with ``cache=False``) its cache: stamped with the
+    package for a kernel of the package, numba's own for one outside it; none when that cannot
+    be done as expected."""
+    py_func = getattr(disp, "py_func", None)
+    if py_func is None:  # NUMBA_DISABLE_JIT: a plain function, nothing to cache
+        return disp
+    if not _in_package(py_func):
+        try:
+            disp.enable_caching()
+        except Exception as exc:  # noqa: BLE001 - whatever numba changed, run uncached
+            _note(f"{py_func.__qualname__}: numba's enable_caching failed ({type(exc).__name__}: {exc})")
+        return disp
+    try:
+        cache_class, locators = _stamped_cache_class()
+        before = disp._cache
+        if type(before).__name__ != "NullCache":
+            raise TypeError(f"an uncached dispatcher's cache is a {type(before).__name__}, not a NullCache")
+        cache = cache_class(py_func)
+        # Check what the cache will compare on load, not what it was asked to use: a locator
+        # list overridden by NUMBA_CACHE_LOCATOR_CLASSES, or a renamed attribute, fails here.
+        if not isinstance(cache._impl.locator, locators):
+            raise TypeError(f"numba chose the locator {type(cache._impl.locator).__name__}, not a stamped one")
+        if cache._cache_file._source_stamp != package_stamp():
+            raise TypeError("the cache file does not carry the package stamp")
+        disp._cache = cache
+    except Exception as exc:  # noqa: BLE001 - anything unexpected: uncached, never stale
+        _note(f"{py_func.__qualname__}: {type(exc).__name__}: {exc} (numba {_numba_version()})")
+    return disp
+
+
+def _numba_version() -> str:
+    import numba
+
+    return getattr(numba, "__version__", "?")
+
+
+@functools.lru_cache(maxsize=None)
+def _stamped_cache_class():
+    """Numba's function cache, its locators stamped with :func:`package_stamp`.
+
+    Returns ``(cache class, tuple of the stamped locator classes)``. Raises when numba's
+    caching classes are not there.
+    """
+    from numba.core import caching
 
     def stamped(base):
         class Locator(base):
             def get_source_stamp(self):
                 return package_stamp()
 
-            @classmethod
-            def from_function(cls, py_func, py_file):
-                try:
-                    Path(py_file).resolve().relative_to(PACKAGE_DIR)
-                except ValueError:
-                    return None
-                return super().from_function(py_func, py_file)
-
         Locator.__name__ = Locator.__qualname__ = f"RtctlStamped{base.__name__}"
         return Locator
 
-    impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)
-    names = ("InTreeCacheLocator", "UserWideCacheLocator", "_InTreeCacheLocator", "_UserWideCacheLocator")
-    bases = [getattr(caching, n) for n in names if hasattr(caching, n)]
-    if impl is None or not bases or any(c.__name__.startswith("RtctlStamped") for c in impl._locator_classes):
-        return
-    user = [c for c in impl._locator_classes if "UserProvided" in c.__name__]
-    rest = [c for c in impl._locator_classes if c not in user]
-    # A user's NUMBA_CACHE_DIR still wins, stamped too (it once was not: after an edit of a callee,
-    # a kernel cached there ran the callee's old code); then ours (in-tree, else user-wide); then
-    # numba's own for code outside the package.
-    impl._locator_classes = [stamped(c) for c in user] + user + [stamped(b) for b in bases] + rest
+    # A user's NUMBA_CACHE_DIR first (numba's order), then beside the sources, then user-wide;
+    # no unstamped locator after them: a kernel none of them can place runs uncached.
+    locators = tuple(stamped(getattr(caching, n))
+                     for n in ("UserProvidedCacheLocator", "InTreeCacheLocator", "UserWideCacheLocator"))
 
+    class Impl(caching.CompileResultCacheImpl):
+        _locator_classes = list(locators)
 
-_install_package_stamp()
+    class Cache(caching.FunctionCache):
+        _impl_class = Impl
+
+    Impl.__name__ = Impl.__qualname__ = "RtctlStampedCacheImpl"
+    Cache.__name__ = Cache.__qualname__ = "RtctlStampedFunctionCache"
+    return Cache, locators

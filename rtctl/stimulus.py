@@ -67,7 +67,7 @@ class RenderStage:
     # --- construction ----------------------------------------------------------------------------
 
     def _build_image(self, scene, st, grid, n_channels):
-        from .render.hia import make_renderer
+        from .render.factory import make_renderer
         from .render.image import load_image
         from .render.path import Path, from_csv, raster
 

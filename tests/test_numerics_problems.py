@@ -61,7 +61,7 @@ def test_convergence_orders(errors):
     # foh: second order
     assert 12.0 < e[("rtctl foh", "fs x1")] / e[("rtctl foh", "fs x4")] < 20.0
     assert e[("rtctl foh", "fs x16")] <= 1e-6
-    # REFERENCES.md: foh of a sampled 250 Hz sine at 48 kHz is ~1e-4 off
+    # foh of a sampled 250 Hz sine at 48 kHz is ~1e-4 off: (w dt)^2 / 12 = 8.9e-5 (docs/physics.md, Sec. 4.2)
     assert 3e-5 < e[("rtctl foh", "fs x1")] < 3e-4
     # oscillator states inside the plant: exact to round-off
     assert e[("rtctl tones", "fs x1")] < 1e-9

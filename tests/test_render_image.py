@@ -125,8 +125,9 @@ def test_cli_options(capsys):
         main([HOPPER, "--method", "roi", "--hia", "3"])
 
 
-MODULES = ["rtctl.render.image", "rtctl.render.hia", "rtctl.render.roi", "rtctl.render.frequency",
-           "rtctl.render.beat", "rtctl.render.path", "rtctl.render.braille", "rtctl.render.shapes"]
+MODULES = ["rtctl.render.image", "rtctl.render.hia", "rtctl.render.factory", "rtctl.render.roi",
+           "rtctl.render.frequency", "rtctl.render.beat", "rtctl.render.path", "rtctl.render.braille",
+           "rtctl.render.shapes"]
 
 
 @pytest.mark.parametrize("name", MODULES)

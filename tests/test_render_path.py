@@ -8,7 +8,7 @@ from matplotlib import cbook
 
 from rtctl.errors import SceneError
 from rtctl.render.cli import main
-from rtctl.render.hia import make_renderer
+from rtctl.render.factory import make_renderer
 from rtctl.render.image import load_image
 from rtctl.render.path import PathPlayer, from_csv, raster, through
 

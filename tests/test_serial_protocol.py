@@ -24,6 +24,14 @@ def test_crc_matches_binascii_crc_hqx(data):
     assert P.crc16(data) == binascii.crc_hqx(data, 0xFFFF)
 
 
+@given(st.binary(max_size=300), st.binary(max_size=300))
+def test_crc_residue_and_continuation(a, b):
+    # The catalogue's residue is 0x0000: a packet followed by its CRC (big endian) checks to 0.
+    assert P.crc16(a + P.crc16(a).to_bytes(2, "big")) == 0x0000
+    # The start value continues a CRC over pieces (how the docs' worked example is tabulated).
+    assert P.crc16(b, P.crc16(a)) == P.crc16(a + b)
+
+
 # --- COBS ------------------------------------------------------------------------------------
 
 # The examples of the COBS article (Cheshire & Baker 1999, as tabulated on Wikipedia's

@@ -8,8 +8,8 @@ import pytest
 from rtctl import scene
 from rtctl.needs import needs
 from rtctl.render.braille import braille_frames
-from rtctl.render.hia import make_renderer
-from rtctl.rig import build
+from rtctl.render.factory import make_renderer
+from rtctl.engine.rig import build
 from test_rig import drive_of
 
 GROUP = """

@@ -21,6 +21,7 @@ Pins are packed 2 bits each, pin ``i`` in bits ``2 (i % 4)`` of byte ``i // 4``:
 
 from __future__ import annotations
 
+import binascii
 import struct
 from typing import NamedTuple
 
@@ -60,31 +61,25 @@ class ProtocolError(ValueError):
     """A packet or body cannot be encoded or decoded."""
 
 
-def _crc_table() -> tuple:
-    table = []
-    for byte in range(256):
-        crc = byte << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
-        table.append(crc & 0xFFFF)
-    return tuple(table)
-
-
-_CRC_TABLE = _crc_table()
-
-
 def crc16(data: bytes, crc: int = 0xFFFF) -> int:
-    """CRC-16/CCITT-FALSE of ``data``, table-driven MSB-first (as a firmware computes it).
+    """CRC-16/CCITT-FALSE of ``data`` (polynomial 0x1021, MSB first, no final XOR).
+
+    This is ``binascii.crc_hqx(data, crc)``: the standard library's CRC-CCITT from a given start
+    value, so the protocol keeps no table of its own.
+
+    Parameters
+    ----------
+    data : bytes-like
+    crc : int
+        Start value: 0xFFFF for a whole packet, or the CRC of the bytes before ``data`` to
+        continue over several pieces.
 
     Examples
     --------
     >>> hex(crc16(b"123456789"))    # the catalogue's check value
     '0x29b1'
     """
-    t = _CRC_TABLE
-    for b in data:
-        crc = ((crc << 8) & 0xFFFF) ^ t[(crc >> 8) ^ b]
-    return crc
+    return binascii.crc_hqx(data, crc)
 
 
 def cobs_encode(data: bytes) -> bytes:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rtctl.numerics.problems import group_problem, register
+from rtctl.numerics.base import group_problem, register
 
 
 @register("sma")

@@ -20,6 +20,7 @@ import scipy.integrate
 import scipy.linalg as sla
 
 from rtctl.errors import ModelError
+from rtctl.numerics.base import default_bimorph_plant, default_finger, skin_contact_model
 
 __all__ = ["Case", "run_cases", "register_case", "CASES", "exact_step", "contact_case",
            "group_step_case", "FULL_SCALE_V"]
@@ -153,7 +154,6 @@ def _bimorph_step_case(name, plant, n, tol=1e-6, u=FULL_SCALE_V, extra=""):
 @register_case("maxwell_tau")
 def maxwell_tau(quick: bool = False) -> list:
     """Finger branch relaxation times 1e-8 s ... 1e3 s, one at a time and all together."""
-    from rtctl.numerics.problems import default_bimorph_plant
     n = 4800 if quick else 24000
     taus = (1e-8, 1e-5, 1e-2, 1.0, 1e3)
     out = []
@@ -168,7 +168,6 @@ def maxwell_tau(quick: bool = False) -> list:
 @register_case("zero_damping")
 def zero_damping(quick: bool = False) -> Case:
     """Undamped beam (zeta = 0, no finger): discrete modes stay on the unit circle."""
-    from rtctl.numerics.problems import default_bimorph_plant
     plant = default_bimorph_plant(finger_branches=None, damping=0.0)
     case, g, _ = _bimorph_step_case("zero_damping", plant, 4800 if quick else 48000)
     pairs, _ = g.modal.blocks()
@@ -181,7 +180,6 @@ def zero_damping(quick: bool = False) -> Case:
 @register_case("modes_above_nyquist")
 def modes_above_nyquist(quick: bool = False) -> Case:
     """Twelve beam modes (up to ~450 kHz) at 48 kHz: exact discretization stays stable."""
-    from rtctl.numerics.problems import default_bimorph_plant
     plant = default_bimorph_plant(n_modes=12)
     lam = np.linalg.eigvals(plant.sys.A)
     z = lam / FS
@@ -196,7 +194,6 @@ def modes_above_nyquist(quick: bool = False) -> Case:
 @register_case("stiffness_1e12")
 def stiffness_1e12(quick: bool = False) -> Case:
     """Eigenvalues spanning 12 decades: a 1e3 s finger branch and a 160 MHz amplifier."""
-    from rtctl.numerics.problems import default_bimorph_plant
     plant = default_bimorph_plant(finger_branches=((300.0, 0.004), (80.0, 1e3)),
                                   amp_bandwidth_hz=1e9 / (2 * math.pi))
     mag = np.abs(np.linalg.eigvals(plant.sys.A))
@@ -209,7 +206,6 @@ def stiffness_1e12(quick: bool = False) -> Case:
 @register_case("full_scale_step")
 def full_scale_step(quick: bool = False) -> Case:
     """150 V step on the default channel: exact, no voltage overshoot, bounded tip."""
-    from rtctl.numerics.problems import default_bimorph_plant
     plant = default_bimorph_plant()
     n = 4800 if quick else 48000
     case, g, truth = _bimorph_step_case("full_scale_step", plant, n)
@@ -259,7 +255,6 @@ def near_defective(quick: bool = False) -> list:
 @register_case("subnormal_decay")
 def subnormal_decay(quick: bool = False) -> list:
     """Free decay to zero after a pulse: no subnormal state, no slowdown (modal and dense)."""
-    from rtctl.numerics.problems import default_bimorph_plant
     from rtctl.plant import SimGroup
     # No finger: its 1.4 s branch would take ~1000 s to reach 1e-308; beam modes at 1 %
     # damping reach it in ~20 s.
@@ -295,7 +290,6 @@ def subnormal_decay(quick: bool = False) -> list:
 @register_case("energy_drift")
 def energy_drift(quick: bool = False) -> Case:
     """1e8 samples (quick: 1e6) of the undamped beam: mechanical energy constant."""
-    from rtctl.numerics.problems import default_bimorph_plant
     from rtctl.plant import SimGroup
     plant = default_bimorph_plant(finger_branches=None, damping=0.0)
     g = SimGroup(plant, FS, 1)
@@ -338,7 +332,6 @@ def refusals(quick: bool = False) -> Case:
     """Models that cannot run safely are refused up front with a ModelError naming why."""
     from rtctl.plant import MaxwellLoad, SimGroup
     from rtctl.plant.lti import StateSpace, c2d, to_modal
-    from rtctl.numerics.problems import default_bimorph_plant
     jordan = c2d(StateSpace([[-1.0, 1.0], [0.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]], [[0.0]]),
                  1 / FS)
     tries = {
@@ -403,24 +396,6 @@ def group_step_case(name: str, make_group: Callable, full_scale_v: float, n: int
     ok = finite and not (status & 2) and peak <= disp_bound
     return Case(name, ok, f"+-{full_scale_v:g} {unit} steps, {n} samples: finite {finite}, "
                           f"peak |x| {peak:.3g} m (<= {disp_bound:g})")
-
-
-def default_finger():
-    """The three-branch finger of the bundled scenes (REFERENCES.md: 4 ms, 70 ms, 1.4 s)."""
-    from rtctl.plant.finger import MaxwellLoad
-    return MaxwellLoad(1e-4, 300.0, ((300.0, 0.004), (150.0, 0.07), (80.0, 1.4)))
-
-
-def skin_contact_model(preload_n: float = 0.0, finger=None):
-    """Kinematic pin on the skin (:func:`rtctl.plant.contact.kinematic_pin_model`).
-
-    Returns ``(model, x0, params)``: the pin rests at height 0, the skin at rest on it.
-    """
-    from rtctl.plant.contact import SkinContact, kinematic_pin_model
-    finger = finger or default_finger()
-    model = kinematic_pin_model(SkinContact(finger))
-    x0, _ = model.equilibrium([0.0, preload_n], fixed={0: 0.0})
-    return model, x0, [preload_n]
 
 
 @register_case("contact")

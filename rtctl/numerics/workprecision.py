@@ -1,6 +1,6 @@
 """Error against wall time: our kernels, dlsim and solve_ivp on each registered problem.
 
-Practice as in DiffEqDevTools / SciMLBenchmarks (REFERENCES.md, Numerics): the error is the
+Practice as in DiffEqDevTools / SciMLBenchmarks (docs/references.md, Numerics): the error is the
 largest deviation from the problem's stated reference on the output grid (relative to each
 output's peak, worst output), the time is the minimum over warm repeats with building and
 compiling apart, adaptive methods sweep ``rtol`` and fixed-step kernels sweep rate or substeps.

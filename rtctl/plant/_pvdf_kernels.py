@@ -71,7 +71,7 @@ def _recurse(zi, pi, L, Gg, Gp, alpha, Z, G, P, E, nb):
                   + Gp[b, 0, 0] * q0 + Gp[b, 0, 1] * q1)
             n1 = (L[b, 1, 0] * z0 + L[b, 1, 1] * z1 + Gg[b, 1, 0] * g0 + Gg[b, 1, 1] * g1
                   + Gp[b, 1, 0] * q0 + Gp[b, 1, 1] * q1)
-            # Subnormals after a silence would slow every later sample ~100x (REFERENCES).
+            # Subnormals after a silence would slow every later sample ~100x (docs/physics.md, Sec. 5.6).
             if abs(n0) < TINY:
                 n0 = 0.0
             if abs(n1) < TINY:

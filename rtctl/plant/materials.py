@@ -8,7 +8,7 @@ material with ``d31 = 0``.
 Built-in values
 ---------------
 ``PZT-5A`` and ``PZT-5H``: Erturk & Inman, *Piezoelectric Energy Harvesting* (2011), Table E.1
-(``s11^E``, ``d31``, ``eps33T/eps0``, ``rho``), as copied in ``REFERENCES.md``.
+(``s11^E``, ``d31``, ``eps33T/eps0``, ``rho``), as copied in ``docs/references.md``.
 
 ``PVDF``: Measurement Specialties (MEAS) *Piezo Film Sensors Technical Manual*, table of typical
 properties of uniaxially stretched film: ``d31 = 23 pC/N``, ``eps33T/eps0 = 12`` (12-13),

@@ -55,8 +55,8 @@ from rtctl.plant.hybrid import TRUTH_NAMES, HybridBuilder, HybridGroup, Lin, uni
 
 __all__ = ["SolenoidPin", "SolenoidGroup", "DEFAULT_FINGER"]
 
-#: Normal finger load under a pin when a scene gives none (REFERENCES.md: three relaxation
-#: times 4 ms, 70 ms, 1.4 s, Pawluk & Howe 1999; stiffnesses as the bundled scenes).
+#: Normal finger load under a pin when a scene gives none (three relaxation times 4 ms, 70 ms,
+#: 1.4 s, Pawluk & Howe 1999, docs/references.md; stiffnesses as the bundled scenes).
 DEFAULT_FINGER = MaxwellLoad(1e-4, 300.0, ((300.0, 0.004), (150.0, 0.07), (80.0, 1.4)))
 
 

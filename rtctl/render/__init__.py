@@ -1,8 +1,8 @@
-"""Rendering: images to per-pin stimulus parameters (issue 5). Imports cv2 lazily.
+"""Rendering: images to per-pin stimulus parameters. Imports cv2 lazily.
 
 Public API (import the submodules; this package imports nothing heavy):
 
-- :func:`rtctl.render.hia.make_renderer` (``roi``, ``canny``, ``frequency``, ``beat``) ->
+- :func:`rtctl.render.factory.make_renderer` (``roi``, ``canny``, ``frequency``, ``beat``) ->
   a :class:`~rtctl.render.hia.Renderer`: ``prepare(image)`` once, ``update(x, y, out)`` per
   render tick, ``render_path(x, y)``; ``out`` columns :data:`~rtctl.render.hia.FIELDS`.
 - :func:`rtctl.render.image.load_image` / ``check_image``: one-line :class:`ImageError`.

@@ -62,7 +62,7 @@ def _times(fn, xs, ys):
 
 def bench_method(method, image, n=2000, seed=0) -> dict:
     """Timings of one method (see the module docstring); dict of floats."""
-    from rtctl.render.hia import make_renderer
+    from rtctl.render.factory import make_renderer
 
     r = make_renderer(method, grid=GRID, hia=HIA[method])
     r.prepare(image[:64, :64])  # compile (or load) the kernels outside the timings

@@ -52,7 +52,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     """Run ``rtctl render``; returns 0, raises :class:`RtctlError` on bad input."""
     args = parser().parse_args(argv)
-    from rtctl.render.hia import make_renderer
+    from rtctl.render.factory import make_renderer
     from rtctl.render.image import load_image
 
     image = load_image(args.image)

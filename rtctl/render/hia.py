@@ -23,7 +23,7 @@ from rtctl.errors import SceneError
 from rtctl.render import _kernels as _k
 from rtctl.render.image import check_image
 
-__all__ = ["Renderer", "FIELDS", "N_FIELDS", "make_renderer", "METHODS"]
+__all__ = ["Renderer", "FIELDS", "N_FIELDS", "METHODS"]
 
 FIELDS = _k.FIELDS
 N_FIELDS = _k.N_FIELDS
@@ -107,7 +107,16 @@ class Renderer:
         return np.zeros(shape)
 
     def origin(self, x, y) -> tuple[int, int]:
-        """Top-left pixel ``(row, col)`` of the HIA centred at ``(x, y)``."""
+        """Top-left pixel ``(row, col)`` of the HIA centred at ``(x, y)``.
+
+        Examples
+        --------
+        A 4 x 4 grid on a 32 px HIA is 32 x 32 px, so its corner is 16 px up and left of the
+        centre (rounded half up):
+
+        >>> Renderer((4, 4), 32).origin(100.5, 50.0)
+        (34, 85)
+        """
         h, w = self.shape
         return int(math.floor(y + 0.5)) - h // 2, int(math.floor(x + 0.5)) - w // 2
 
@@ -178,29 +187,3 @@ class Renderer:
         """Intermediate images of the last :meth:`prepare` (name -> uint8 array), for display."""
         return {}
 
-
-def make_renderer(method: str, **kw) -> Renderer:
-    """A renderer by method name (``roi``, ``canny``, ``frequency``, ``beat``).
-
-    Keyword arguments go to the method's class: :class:`~rtctl.render.roi.RoiRenderer`,
-    :class:`~rtctl.render.frequency.FrequencyRenderer`, :class:`~rtctl.render.beat.BeatRenderer`.
-
-    Examples
-    --------
-    >>> r = make_renderer("roi", grid=(4, 4), hia=32)
-    >>> r.cell, r.fields
-    (8, ('up',))
-    """
-    if method in ("roi", "canny"):
-        from rtctl.render.roi import RoiRenderer
-
-        return RoiRenderer(edges=(method == "canny"), **kw)
-    if method == "frequency":
-        from rtctl.render.frequency import FrequencyRenderer
-
-        return FrequencyRenderer(**kw)
-    if method == "beat":
-        from rtctl.render.beat import BeatRenderer
-
-        return BeatRenderer(**kw)
-    raise SceneError(f"render method {method!r} is unknown; use one of {', '.join(METHODS)}")

@@ -184,7 +184,7 @@ class PathPlayer:
 
     Examples
     --------
-    >>> from rtctl.render.hia import make_renderer
+    >>> from rtctl.render.factory import make_renderer
     >>> r = make_renderer("roi", grid=(4, 4), hia=32).prepare(np.zeros((64, 64), np.uint8))
     >>> player = PathPlayer(r, through([(0, 32), (63, 32)], [0.0, 0.063]), fs=48000.0, block=32)
     >>> pending = r.empty()
