@@ -111,7 +111,7 @@ def impulse_latency(srv, scene, wire: bool, k0=300):
 
 def _layout(scene):
     from rtctl.io.base import Layout
-    from rtctl.rig import sensed_layout
+    from rtctl.models import sensed_layout
 
     rows, owner = sensed_layout(scene)
     names = [f"{g.name}.{i}" for g in scene.actuator for i in range(g.grid[0] * g.grid[1])]
@@ -205,7 +205,7 @@ def callback_costs(block, n_calls=20000):
     from rtctl import scene as scenes
     from rtctl.io import _audio_kernels as K
     from rtctl.io.audio import AudioBackend, channel_map
-    from rtctl.rig import build
+    from rtctl.engine.rig import build
 
     sc = scenes.load(SCENE, [f"timing.block={block}"])
     out = {}
@@ -262,7 +262,7 @@ def callback_costs(block, n_calls=20000):
 
 def busy_engine(srv, block, seconds, busy):
     from rtctl import scene as scenes
-    from rtctl.rig import build
+    from rtctl.engine.rig import build
 
     res = {}
     for kind in ("python", "cfunc"):

@@ -123,7 +123,7 @@ def time_numpy(rig, seconds: float) -> float:
 def compile_times() -> dict:
     """Build the 48-channel rig in fresh processes: empty numba cache, then the warm one."""
     code = ("import time; t = time.perf_counter(); import sys; sys.path.insert(0, %r); "
-            "from loop import scene_for; from rtctl.rig import build; build(scene_for(48, 32)); "
+            "from loop import scene_for; from rtctl.engine.rig import build; build(scene_for(48, 32)); "
             "print(time.perf_counter() - t)") % os.path.dirname(os.path.abspath(__file__))
     out = {}
     with tempfile.TemporaryDirectory() as d:
@@ -140,7 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=0.9, help="wall time per configuration")
     ap.add_argument("--quick", action="store_true", help="48 channels at block 32 only")
     a = ap.parse_args(argv)
-    from rtctl.rig import build
+    from rtctl.engine.rig import build
 
     configs = [(48, 32)] if a.quick else [(c, b) for c in CHANNELS for b in BLOCKS]
     results = []

@@ -204,7 +204,7 @@ def _check(args) -> int:
 
 
 def _model(args) -> int:
-    from .rig import model_facts
+    from .model_report import model_facts
 
     s = _load(args)
     facts = model_facts(s)
@@ -223,8 +223,8 @@ def _model(args) -> int:
 
 
 def _run(args) -> int:
-    from .loop import run
-    from .report import print_table
+    from .engine.run import run
+    from .engine.report import print_table
 
     s = _load(args)
     out = args.out or os.path.join("out", s.scene.name)

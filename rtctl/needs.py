@@ -1,6 +1,6 @@
 """What a scene needs, and what it leaves out.
 
-Pure bookkeeping on the validated scene: imports nothing. :func:`rtctl.rig.build` constructs,
+Pure bookkeeping on the validated scene: imports nothing. :func:`rtctl.engine.rig.build` constructs,
 imports and compiles exactly the components listed here, and ``rtctl check`` prints them.
 """
 

@@ -1,5 +1,8 @@
-"""Rendered stimuli in the loop: images (along an HIA path), Braille text and shapes become
-per-channel parameter changes written between blocks.
+"""What a scene plays: its tones (single tones, beat pairs, square and pulse trains) with their
+perception targets and schedule, or a rendered stimulus; both become per-channel parameter
+changes handed to the block function between blocks (:class:`Stimulus`).
+
+Rendered stimuli: images (along an HIA path), Braille text and shapes.
 
 The renderer (:mod:`rtctl.render`) produces per-pin parameters at the render rate; this stage maps
 them onto the synthesis the display needs, ramped or switched by the dsp kernels in the next block:
@@ -15,13 +18,127 @@ Only :meth:`RenderStage.apply` runs between blocks; all image-wide work happens 
 
 from __future__ import annotations
 
+import math
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
+from . import perception
 from .errors import SceneError
 
 BIPOLAR = ("dot", "sma")  # pins whose "down" is a command of the opposite polarity
+#: Pins driven between end stops: their stroke is set by the stops, not by the drive amplitude,
+#: so a perception-margin amplitude target (and an error against it) means nothing.
+END_STOP_TYPES = ("solenoid", "dot")
+
+
+@dataclass(frozen=True)
+class Tone:
+    """One scene tone (or beat pair) on one channel, with its perception target."""
+
+    channel: int              # global channel index
+    freq: float               # Hz, carrier for a beat pair
+    beat: float               # Hz, 0 for a single tone
+    voltage: float            # V peak (envelope peak for a pair)
+    receptor: str | None
+    threshold_m: float        # m, NaN when no receptor responds at freq
+    target_m: float           # m
+    start: float              # s
+    freqs: tuple              # Hz, the oscillator tones that make it (two for a beat pair)
+    shape: str = "sine"       # sine (oscillator bank) | square | pulse (pulse trains)
+
+
+class Stimulus:
+    """The synthesis a scene needs and the parameter changes due at each block.
+
+    Attributes
+    ----------
+    tones : list of Tone
+    targets_um : ndarray, shape (n_channels,)
+        Perception target per channel, um (NaN where no tone has one).
+    bank : OscillatorBank or None
+        Sine tones and beat pairs (or the beat method's rendered sines).
+    pulses : PulseTrain or None
+        Square and pulse tones (or the other rendering methods' pulse trains and levels).
+    render : RenderStage or None
+    """
+
+    def __init__(self, scene, offsets: dict, n_channels: int, fs: float, block: int):
+        self.fs, self.block, self.n_channels = float(fs), int(block), int(n_channels)
+        tones, chans, freqs = [], [], []
+        self._schedule: dict[int, list] = {}
+        scene_tones = scene.stimulus.tones if scene.stimulus.kind == "tones" else ()
+        if scene_tones:
+            from .dsp import OscillatorBank, beat_tones
+        pulses = {}  # channel -> (block, freq, duty, high, low): square and pulse tones
+        for i, t in enumerate(scene_tones):
+            ch = offsets[t.actuator] + t.channel
+            receptor = perception.auto_receptor(t.freq) if t.receptor == "auto" else t.receptor
+            thr = perception.threshold_m(t.freq, receptor) if receptor else math.nan
+            stops = scene.group(t.actuator).type in END_STOP_TYPES
+            tgt = perception.target_m(t.freq, receptor, scene.control.margin_db) if receptor and not stops else math.nan
+            kb = int(math.floor(t.start * self.fs / self.block))
+            if t.shape != "sine":
+                if t.beat > 0:
+                    raise SceneError(f"{scene.source}: stimulus.tones.{i}.beat = {t.beat:g}: a beat pair "
+                                     "needs shape = 'sine'")
+                if ch in pulses:
+                    raise SceneError(f"{scene.source}: stimulus.tones.{i}: channel {t.actuator}.{t.channel} "
+                                     "already plays a square/pulse tone (one per channel)")
+                high, low, duty = (t.voltage, -t.voltage, 0.5) if t.shape == "square" else (t.voltage, 0.0, t.duty)
+                pulses[ch] = (kb, t.freq, duty, high, low)
+                tones.append(Tone(ch, t.freq, 0.0, t.voltage, receptor, thr, tgt, t.start, (t.freq,), t.shape))
+                continue
+            if t.beat > 0:  # a pair of half amplitude each: the envelope peaks at the pair voltage
+                fr, am = (tuple(float(x) for x in a) for a in beat_tones(t.freq, t.beat, t.voltage))
+            else:
+                fr, am = (t.freq,), (t.voltage,)
+            tones.append(Tone(ch, t.freq, t.beat, t.voltage, receptor, thr, tgt, t.start, fr))
+            # Every tone switches on ramped over one block at the block holding its start time.
+            self._schedule.setdefault(kb, []).extend(zip(range(len(freqs), len(freqs) + len(fr)), am))
+            chans += [ch] * len(fr)
+            freqs += fr
+        self.tones = tones
+        self.targets_um = np.full(self.n_channels, np.nan)
+        for tone in tones:
+            self.targets_um[tone.channel] = tone.target_m * 1e6
+        self.bank = None
+        if freqs:
+            self.bank = OscillatorBank(self.n_channels, np.array(chans), self.fs, np.array(freqs),
+                                       np.zeros(len(freqs)), ramp=self.block)
+        self.pulses = None
+        self.render = None
+        self._pulse_schedule: dict[int, list] = {}
+        if scene.stimulus.kind != "tones":
+            self.render = RenderStage(scene, offsets, self.n_channels, self.fs, self.block)
+            self.bank, self.pulses = self.render.bank, self.render.pulses
+        if pulses:
+            from .dsp import PulseTrain
+
+            # Silent (frequency 0, both levels 0) until a channel's start block.
+            self.pulses = PulseTrain(self.n_channels, self.fs, 0.0, 0.5, 0.0, 0.0)
+            for ch, (kb, f, duty, high, low) in pulses.items():
+                self._pulse_schedule.setdefault(kb, []).append((ch, f, duty, high, low))
+
+    def apply(self, k: int) -> None:
+        """The parameter changes due at block ``k`` (ramped across that block), through the
+        banks' :meth:`route` when the engine set one."""
+        for i, amp in self._schedule.get(k, ()):
+            self.bank.set(i, amp=amp)
+        for ch, f, duty, high, low in self._pulse_schedule.get(k, ()):
+            self.pulses.set(ch, freq=f, duty=duty, high=high, low=low)
+        if self.render is not None:
+            self.render.apply(k)
+
+    def reset(self) -> None:
+        """Back to the start: banks at rest (no block may run meanwhile), render at its first frame."""
+        if self.bank is not None:
+            self.bank.reset()
+        if self.pulses is not None:
+            self.pulses.reset()
+        if self.render is not None:
+            self.render.reset()
 
 
 class RenderStage:
@@ -138,6 +255,12 @@ class RenderStage:
         self._shown = -1
 
     # --- between blocks --------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Before the first block: nothing shown yet."""
+        self._shown = -1
+        if self._frames is None:
+            self.player.index = -1
 
     def apply(self, k: int) -> None:
         """Write the parameter changes due at block ``k``."""

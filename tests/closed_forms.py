@@ -1,6 +1,6 @@
 """Closed forms for the bimorph finite-element tests (plain numpy/scipy, no rtctl model code).
 
-Sources (see /work/shared/design/REFERENCES.md):
+Sources (see docs/references.md):
 
 * Euler-Bernoulli cantilever roots of ``1 + cos l cosh l = 0`` and ``f_n = l_n^2/(2 pi L^2)
   sqrt(EI/(rho A))``; tip force/moment deflections; tip spring and tip mass characteristic
@@ -26,10 +26,10 @@ from scipy.optimize import brentq
 
 EPS0 = 8.8541878128e-12  # F/m, CODATA 2018
 
-#: Roots of 1 + cos(l) cosh(l) = 0 (REFERENCES.md).
+#: Roots of 1 + cos(l) cosh(l) = 0 (docs/references.md).
 CANTILEVER_ROOTS = np.array([1.8751040687, 4.6940911330, 7.8547574382, 10.995540735])
 
-#: Tip-spring limit K -> inf (clamped-pinned, REFERENCES.md) and tip-mass root at mu = 1.
+#: Tip-spring limit K -> inf (clamped-pinned, docs/references.md) and tip-mass root at mu = 1.
 CLAMPED_PINNED_ROOT = 3.926602
 TIP_MASS_MU1_ROOT = 1.247917
 

@@ -397,7 +397,7 @@ def test_device_loss_ends_the_run_quickly_with_zero_outputs(stall):
 # --- the C callback (numba cfunc) against the Python one -----------------------------------------
 
 def rig_backend(scene, cfunc: bool, monkeypatch):
-    from rtctl.rig import build
+    from rtctl.engine.rig import build
 
     monkeypatch.setenv("RTCTL_AUDIO_CFUNC", "1" if cfunc else "0")
     rig = build(scene)
@@ -466,7 +466,7 @@ def boom(flag, out):
 
 
 def test_c_callback_catches_a_failing_step_fades_then_aborts():
-    from rtctl.rig import _snapshot
+    from rtctl.engine.kernels import snapshot as _snapshot
 
     out, sensed = np.zeros((2, BLOCK)), np.zeros((3, BLOCK))
     est, amp, temp = np.zeros((2, BLOCK)), np.zeros(2), np.zeros(2)

@@ -1,6 +1,6 @@
 """Finite-element bimorph model against closed forms and published numbers.
 
-Every expectation says where it comes from; REFERENCES = /work/shared/design/REFERENCES.md.
+Every expectation says where it comes from; REFERENCES = docs/references.md.
 Closed forms live in tests/closed_forms.py (never in rtctl).
 """
 

@@ -94,15 +94,16 @@ def test_run_amplitude_matches_the_continuous_model(capsys, tmp_path):
     from rtctl import scene
     from rtctl.plant.bimorph import BimorphPlant
     from rtctl.plant.frontend import Amplifier, CurrentSense
-    from rtctl.rig import _materials, beam_model, finger_load
+    from rtctl.models import Models
 
     code, out, _ = run_cli(capsys, "run", "line-bimorph-5", "--duration", "1.0", "--out", str(tmp_path),
                            "--json", "--no-plot")
     assert code == 0
     s = scene.load("line-bimorph-5")
     g = s.group("lateral")
-    plant = BimorphPlant(beam_model(g, _materials(s)), Amplifier(g.amplifier.bandwidth),
-                         CurrentSense(g.sense.shunt, g.sense.aa_cutoff), finger_load(s, g), n_modes=g.beam.modes)
+    m = Models(s)
+    plant = BimorphPlant(m.beam(g), Amplifier(g.amplifier.bandwidth),
+                         CurrentSense(g.sense.shunt, g.sense.aa_cutoff), m.finger(g), n_modes=g.beam.modes)
     rows = json.loads(out)["channels"]
     for i in (2, 3, 4):  # 40, 120, 250 Hz: settled within the 1 s run
         t = s.stimulus.tones[i]
@@ -114,7 +115,7 @@ def test_run_amplitude_matches_the_continuous_model(capsys, tmp_path):
 @pytest.mark.parametrize("connection", ["series", "parallel"])
 def test_model_agrees_with_closed_forms_on_unseen_beams(capsys, seed, connection):
     """Random geometry and a material defined on the command line (not in the repo): clamped-free
-    frequencies within 0.5 %, Smits-Choi statics within 1 % (REFERENCES.md)."""
+    frequencies within 0.5 %, Smits-Choi statics within 1 % (docs/references.md)."""
     rng = np.random.default_rng(100 + seed)
     L, w, t = rng.uniform(5e-3, 40e-3), rng.uniform(0.5e-3, 8e-3), rng.uniform(0.05e-3, 0.6e-3)
     E, d31, eps, rho = rng.uniform(5e9, 120e9), rng.uniform(-400e-12, 400e-12), rng.uniform(200, 4000), rng.uniform(1500, 9000)
@@ -151,7 +152,7 @@ def test_loaded_frequencies_match_the_tip_mass_and_spring_equation(capsys):
     L, w, h, E, rho = 15e-3, 1.5e-3, 0.6e-3, 1 / 16.4e-12, 7750.0
     EI, rhoA = E * w * h**3 / 12, rho * w * h
     K, mu = 800.0 * L**3 / EI, 5e-5 / (rhoA * L)
-    # combined tip mass + spring: the frequency equation with both terms (REFERENCES.md forms)
+    # combined tip mass + spring: the frequency equation with both terms (docs/references.md forms)
     from scipy.optimize import brentq
 
     def char(l):

@@ -123,7 +123,7 @@ def test_plot_shows_the_driven_pins_first_and_says_how_many(solenoid_run):
     assert "340 Hz" in titles[[t.split()[0] if t else "" for t in titles].index("pins.8")]
     assert "8 of 9 channels shown (driven first)" in fig.get_suptitle()
     assert (solenoid_run["dir"] / "plot.png").stat().st_size > 10_000
-    from rtctl.report import plot_channels
+    from rtctl.engine.report import plot_channels
 
     rows = solenoid_run["summary"]["channels"]
     assert len(rows) == 9
@@ -134,7 +134,7 @@ def test_plot_shows_the_driven_pins_first_and_says_how_many(solenoid_run):
 
 
 def test_plot_caption_is_empty_when_every_channel_fits():
-    from rtctl.report import plot_channels
+    from rtctl.engine.report import plot_channels
 
     rows = [{"v_peak": v, "freq_hz": None} for v in (0.0, 3.0, 0.0)]
     assert plot_channels(rows) == ([0, 1, 2], "")

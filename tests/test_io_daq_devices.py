@@ -111,7 +111,7 @@ def fake_nidaqmx(monkeypatch):
 def test_daq_backend_scales_maps_and_primes(fake_nidaqmx):
     """Channels named from io.device and the maps, AI clocked by the AO sample clock, no
     regeneration, PRIME zero blocks ahead, volts/amps scaled by the full scales."""
-    from rtctl.rig import build
+    from rtctl.engine.rig import build
 
     s = scene.load("line-bimorph-5", ["io.backend=daq", "io.device=Dev1", "io.outputs=[4, 3, 2, 1, 0]",
                                       "io.volts_per_fs=100.0", "io.amps_per_fs=0.02"])
@@ -133,7 +133,7 @@ def test_daq_backend_scales_maps_and_primes(fake_nidaqmx):
 
 
 def test_daq_lost_device_is_a_status_not_an_exception(fake_nidaqmx):
-    from rtctl.rig import build
+    from rtctl.engine.rig import build
     from rtctl.safety import DEVICE_LOST
 
     rig = build(scene.load("line-bimorph-5", ["io.backend=daq", "io.device=Dev1"]))
@@ -147,7 +147,7 @@ def test_daq_lost_device_is_a_status_not_an_exception(fake_nidaqmx):
 
 
 def test_daq_channel_map_errors_name_the_key(fake_nidaqmx):
-    from rtctl.rig import build
+    from rtctl.engine.rig import build
 
     with pytest.raises(SceneError, match="io.outputs has 2 entries but the scene has 5 drive channels"):
         build(scene.load("line-bimorph-5", ["io.backend=daq", "io.device=Dev1", "io.outputs=[0, 1]"]))

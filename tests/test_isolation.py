@@ -35,14 +35,18 @@ def test_open_loop_run_never_imports_or_compiles_what_it_leaves_out(tmp_path):
     code = """
 import json, sys
 from rtctl import scene
-from rtctl.loop import run
+from rtctl.engine.rig import build
+from rtctl.engine.run import run
 r = run(scene.load('line-bimorph-5', ['timing.duration=0.05']), out_dir=sys.argv[1], plot=False)
-import rtctl.dsp as dsp, rtctl._step as step
+rig = build(scene.load('line-bimorph-5', ['timing.duration=0.05']))
+import rtctl.dsp as dsp
 print(json.dumps({
     'modules': sorted(sys.modules),
-    'compiled': {k: len(getattr(m, k).signatures) for m, k in
-                 [(step, 'step_tones'), (step, 'step_silent')] + [(dsp, k) for k in
-                 ('lockin_process', 'pulse_process', 'ramp_process', 'fade_process')]},
+    'stages': [s.name for s in rig.stages],
+    'composed': rig.compose_note,
+    'imports': [ln for ln in rig._block.source.splitlines() if ln.startswith('from ') and ' as k' in ln],
+    'compiled': {k: len(getattr(dsp, k).signatures) for k in
+                 ('lockin_process', 'pulse_process', 'ramp_process', 'fade_process')},
     'faults': r.summary['faults'],
 }))
 """
@@ -54,10 +58,13 @@ print(json.dumps({
                    "rtctl.io.audio", "rtctl.control"):
         assert absent not in mods, absent
     assert {"rtctl.plant.bimorph", "rtctl.dsp", "rtctl.io.sim"} <= mods
-    # the tone step ran (compiled or loaded from the cache); the silent step, the lock-in, pulse
-    # trains, ramps and fades were never compiled (a callee compiles when its caller does)
-    assert d["compiled"] == {"step_tones": 1, "step_silent": 0, "lockin_process": 0, "pulse_process": 0,
-                             "ramp_process": 0, "fade_process": 0}
+    # the block function is composed of exactly the stages the scene needs, and imports only
+    # their kernels; the lock-in, pulse trains, ramps and fades were never compiled
+    assert d["composed"] == "composed"
+    assert d["stages"] == ["params", "sim read", "clear", "oscillators", "limiter", "sim group 0"]
+    kernels = sorted(ln.split(" import ")[1].split(" as ")[0] for ln in d["imports"])
+    assert kernels == sorted(["drain", "deliver", "clear", "osc_bank_process", "limit_block", "sim_group_process", "group_status"]), kernels
+    assert d["compiled"] == {"lockin_process": 0, "pulse_process": 0, "ramp_process": 0, "fade_process": 0}
     assert d["faults"] == []
 
 
@@ -72,7 +79,7 @@ def test_check_imports_no_model_at_all():
 
 def test_import_and_sim_run_without_portaudio_serial_or_opencv(tmp_path):
     code = BLOCK_OPTIONAL + """
-import rtctl, rtctl.cli, rtctl.scene, rtctl.loop, rtctl.rig, rtctl.io, rtctl.safety
+import rtctl, rtctl.cli, rtctl.scene, rtctl.engine.run, rtctl.engine.rig, rtctl.io, rtctl.safety
 from rtctl.cli import main
 sys.exit(main(['run', 'line-bimorph-5', '--duration', '0.05', '--out', sys.argv[1], '--no-plot', '--quiet']))
 """
@@ -105,7 +112,7 @@ def test_ctrl_c_fades_to_zero_and_keeps_the_trace(tmp_path):
 
 def test_realtime_pacing_takes_wall_time(tmp_path):
     from rtctl import scene
-    from rtctl.loop import run
+    from rtctl.engine.run import run
 
     t0 = time.perf_counter()
     r = run(scene.load("line-bimorph-5", ["timing.duration=0.3"]), realtime=True)

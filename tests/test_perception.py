@@ -1,4 +1,4 @@
-"""Thresholds are seed 000's numbers (REFERENCES.md, Thresholds)."""
+"""Thresholds are seed 000's numbers (docs/references.md, Thresholds)."""
 
 import math
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rtctl import scene
-from rtctl.rig import build
+from rtctl.engine.rig import build
 
 
 def drive_of(rig, n_blocks):

@@ -6,7 +6,7 @@ import pytest
 
 from rtctl import scene
 from rtctl.errors import SceneError
-from rtctl.loop import run
+from rtctl.engine.run import run
 from rtctl.needs import needs
 from rtctl.trace import TraceReader
 
@@ -27,7 +27,7 @@ def test_observe_pulls_in_selfsense_only_when_asked():
 def test_estimated_amplitude_matches_the_plant(observed):
     """Single tones 2-120 Hz and a 245+255 Hz beat pair under the scene's finger: the observer's
     amplitude (median over the analysis window) within 1 % of the least-squares fit of the true
-    tip motion (issue 4's target at 60 dB; measured 0.35-0.44 %)."""
+    tip motion (the target at 60 dB; measured 0.35-0.44 %)."""
     res, _ = observed
     rows = res.summary["channels"]
     assert len(rows) == 5
@@ -60,7 +60,7 @@ def test_rebuilt_waveform_follows_the_tip_one_block_late(observed):
 
 def test_observer_refuses_rendered_stimuli():
     with pytest.raises(SceneError, match="control.observe needs stimulus.kind = 'tones'"):
-        from rtctl.rig import build
+        from rtctl.engine.rig import build
 
         build(scene.load("line-bimorph-5", ["control.observe=true", "stimulus.kind=shape",
                                              "stimulus.shape=cross"]))
@@ -68,9 +68,10 @@ def test_observer_refuses_rendered_stimuli():
 
 def test_observer_refuses_an_ill_conditioned_design(monkeypatch):
     """A design beyond the rig's bound is refused by name, not run on noise."""
-    from rtctl import rig as rig_mod
+    from rtctl import models
+    from rtctl.engine.rig import build
     from rtctl.errors import ModelError
 
-    monkeypatch.setattr(rig_mod, "OBSERVER_MAX_COND", 1.0)  # the bundled beam's designs sit at 5-8
+    monkeypatch.setattr(models, "OBSERVER_MAX_COND", 1.0)  # the bundled beam's designs sit at 5-8
     with pytest.raises(ModelError, match="ill-conditioned"):
-        rig_mod.build(scene.load("line-bimorph-5", ["control.observe=true"]))
+        build(scene.load("line-bimorph-5", ["control.observe=true"]))

@@ -7,7 +7,8 @@ import pytest
 from rtctl import scene
 from rtctl.errors import SceneError
 from rtctl.needs import needs
-from rtctl.rig import build, finger_load
+from rtctl.engine.rig import build
+from rtctl.models import finger_load
 from test_rig import drive_of
 
 
@@ -32,7 +33,7 @@ def test_pulse_tone_duty_and_only_pulse_trains_when_no_sine():
     n = needs(s)
     assert "dsp.pulse" in n.needed and "dsp.oscillator" in n.left_out
     rig = build(s)
-    assert rig.bank is None and rig._step.__name__ == "step_pulses"
+    assert rig.bank is None and [s.name for s in rig.stages if s.name in ("oscillators", "pulses")] == ["pulses"]
     d = drive_of(rig, 150)[0]
     # 200 Hz: 240 samples per period, high for 60; the DDS rounds the step to 2**-40 cycle, so an
     # edge may land one sample late, but the mean duty over 20 periods is exact to 1/4800.

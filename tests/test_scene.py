@@ -1,4 +1,4 @@
-"""Scenes: the ARCHITECTURE.md contract, validation messages, --set overrides, docs in sync."""
+"""Scenes: the documented scene contract, validation messages, --set overrides, docs in sync."""
 
 from pathlib import Path
 
@@ -9,7 +9,7 @@ from rtctl.errors import SceneError
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# The example of ARCHITECTURE.md, verbatim: these keys are a contract with tests outside the repo.
+# The documented contract example, verbatim: these keys are a contract with tests outside the repo.
 CONTRACT = """
 [scene]
 name = "bimodal-4x4"

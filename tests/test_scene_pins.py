@@ -7,9 +7,9 @@ import pytest
 
 from rtctl import scene
 from rtctl.cli import main
-from rtctl.loop import run
+from rtctl.engine.run import run
 from rtctl.render.braille import braille_frames
-from rtctl.rig import model_facts
+from rtctl.model_report import model_facts
 from rtctl.trace import TraceReader
 
 

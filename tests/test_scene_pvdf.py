@@ -7,7 +7,7 @@ import pytest
 from scipy.signal import hilbert
 
 from rtctl import scene
-from rtctl.loop import run
+from rtctl.engine.run import run
 from rtctl.trace import TraceReader
 
 FS = 48000.0

@@ -1,4 +1,4 @@
-"""Transfer-matrix beam against closed forms (REFERENCES.md) and its own naive twins."""
+"""Transfer-matrix beam against closed forms (docs/references.md) and its own naive twins."""
 
 import math
 

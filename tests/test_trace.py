@@ -49,7 +49,7 @@ def test_single_row_read_equals_the_full_read(tmp_path):
 
 
 def test_plot_envelope_keeps_every_bucket_extreme():
-    from rtctl.report import _envelope
+    from rtctl.engine.report import _envelope
 
     rng = np.random.default_rng(0)
     x = rng.normal(size=1_000_003)

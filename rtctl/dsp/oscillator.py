@@ -147,6 +147,8 @@ class OscillatorBank:
     >>> bank.set(1, freq=80.0, amp=0.0)   # ramped over the next 32 samples
     """
 
+    _post = None  # see route()
+
     def __init__(self, n_channels, tone_channel, fs, freq, amp, phase=0.0, ramp=32):
         self.n_channels = _check_int("n_channels", n_channels, 1)
         self.fs = _check_fs(fs)
@@ -249,6 +251,18 @@ class OscillatorBank:
         )
 
     # ---- targets -----------------------------------------------------------------------------
+    def route(self, post) -> None:
+        """Hand parameter changes to ``post(row, cols, values)`` instead of writing ``pending``
+        (``None``: write it again). An engine whose block function drains a queue into
+        ``pending`` routes them there, so that the block function stays its only writer."""
+        self._post = post
+
+    def _write(self, row, cols, values) -> None:
+        if self._post is None:
+            self.pending[row, cols] = values
+        else:
+            self._post(row, cols, values)
+
     def set(self, i, freq=None, amp=None, ramp=None):
         """Ramp tone ``i`` to ``freq`` (Hz) and/or ``amp`` from the start of the next call.
 
@@ -256,11 +270,11 @@ class OscillatorBank:
         """
         i = _check_int("i", i, 0, self.n_tones - 1)
         if freq is not None:
-            self.pending[_k.P_FREQ, i] = self._freq(freq, 1)[0]
+            self._write(_k.P_FREQ, i, self._freq(freq, 1)[0])
         if amp is not None:
-            self.pending[_k.P_AMP, i] = _vector("amp", amp, 1, 0.0, np.inf)[0]
-        self.pending[_k.P_RAMP, i] = self._ramp(ramp)
-        self.pending[_k.P_FLAG, i] = 1.0
+            self._write(_k.P_AMP, i, _vector("amp", amp, 1, 0.0, np.inf)[0])
+        self._write(_k.P_RAMP, i, self._ramp(ramp))
+        self._write(_k.P_FLAG, i, 1.0)
 
     def set_all(self, freq=None, amp=None, ramp=None):
         """Vectorized :meth:`set`: ``freq``, ``amp`` scalars or shape (n_tones,); ``None`` keeps."""
@@ -270,11 +284,11 @@ class OscillatorBank:
             amp = _vector("amp", amp, self.n_tones, 0.0, np.inf)
         r = self._ramp(ramp)
         if freq is not None:
-            self.pending[_k.P_FREQ] = freq
+            self._write(_k.P_FREQ, slice(None), freq)
         if amp is not None:
-            self.pending[_k.P_AMP] = amp
-        self.pending[_k.P_RAMP] = r
-        self.pending[_k.P_FLAG] = 1.0
+            self._write(_k.P_AMP, slice(None), amp)
+        self._write(_k.P_RAMP, slice(None), r)
+        self._write(_k.P_FLAG, slice(None), 1.0)
 
     def set_beat(self, tones, carrier=None, beat=None, amp=None, ramp=None):
         """Re-target the beat pair made of tones ``tones = (lower, upper)``.

@@ -49,6 +49,8 @@ class PulseTrain:
     array([1., 1., 0., 0., 1., 1., 0., 0.])
     """
 
+    _post = None  # see route()
+
     def __init__(self, n_channels, fs, freq=0.0, duty=0.5, high=1.0, low=0.0, phase=0.0):
         self.n_channels = _check_int("n_channels", n_channels, 1)
         self.fs = _check_fs(fs)
@@ -89,22 +91,34 @@ class PulseTrain:
         self.state[_k.PFS] = self.fs
         _k.pulse_process(self.state, self.pending, np.zeros((self.n_channels, 0)))
 
+    def route(self, post) -> None:
+        """Hand parameter changes to ``post(row, cols, values)`` instead of writing ``pending``
+        (``None``: write it again). An engine whose block function drains a queue into
+        ``pending`` routes them there, so that the block function stays its only writer."""
+        self._post = post
+
+    def _write(self, row, cols, values) -> None:
+        if self._post is None:
+            self.pending[row, cols] = values
+        else:
+            self._post(row, cols, values)
+
     def set(self, c, freq=None, duty=None, high=None, low=None):
         """Change channel ``c`` from the start of the next call; ``None`` keeps a parameter."""
         c = _check_int("c", c, 0, self.n_channels - 1)
         values = self._checked(freq, duty, high, low, 1)
         for row, v in zip((_k.Q_FREQ, _k.Q_DUTY, _k.Q_HIGH, _k.Q_LOW), values):
             if v is not None:
-                self.pending[row, c] = v[0]
-        self.pending[_k.Q_FLAG, c] = 1.0
+                self._write(row, c, v[0])
+        self._write(_k.Q_FLAG, c, 1.0)
 
     def set_all(self, freq=None, duty=None, high=None, low=None):
         """Vectorized :meth:`set`: scalars or shape (n_channels,); ``None`` keeps."""
         values = self._checked(freq, duty, high, low, self.n_channels)
         for row, v in zip((_k.Q_FREQ, _k.Q_DUTY, _k.Q_HIGH, _k.Q_LOW), values):
             if v is not None:
-                self.pending[row] = v
-        self.pending[_k.Q_FLAG] = 1.0
+                self._write(row, slice(None), v)
+        self._write(_k.Q_FLAG, slice(None), 1.0)
 
     def set_range(self, channels: slice, freq=None, duty=None, high=None, low=None):
         """:meth:`set` for the contiguous channels ``channels`` (scalars or their shape)."""
@@ -114,8 +128,8 @@ class PulseTrain:
         values = self._checked(freq, duty, high, low, c1 - c0)
         for row, v in zip((_k.Q_FREQ, _k.Q_DUTY, _k.Q_HIGH, _k.Q_LOW), values):
             if v is not None:
-                self.pending[row, c0:c1] = v
-        self.pending[_k.Q_FLAG, c0:c1] = 1.0
+                self._write(row, slice(c0, c1), v)
+        self._write(_k.Q_FLAG, slice(c0, c1), 1.0)
 
     def set_level(self, c, on):
         """Level mode for a latching pin: hold ``high`` (on) or ``low`` (off) from the next call."""

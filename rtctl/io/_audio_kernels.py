@@ -8,12 +8,11 @@ microsecond of dispatch, a numpy call per channel would cost that per channel.
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
-from numba.core import cgutils, types
-from numba.extending import intrinsic
+from numba.core import types
 
+from .._codegen import kernel_call, load_generated, voidptr_at  # noqa: F401 - voidptr_at: generated code
 from .._numba import kernel
 from ..safety import _DVMAX, _FADE_FROM, _V, DEVICE_LOST, FAULTS, IO_XRUN, XRUN_BURST
 
@@ -255,14 +254,6 @@ def callback(inp, outp, frames, time_info, flags, user):
 """
 
 
-@intrinsic
-def voidptr_at(typingctx, addr):
-    """An int64 address as a ``void *`` in compiled code (numba has no cast for that)."""
-    def codegen(context, builder, sig, args):
-        return builder.inttoptr(args[0], cgutils.voidptr_t)
-    return types.voidptr(types.int64), codegen
-
-
 # By symbol name, not a ctypes pointer: code using it can be cached (a pointer cannot).
 clock_gettime = types.ExternalFunction("clock_gettime", types.int32(types.int32, types.voidptr))
 
@@ -308,30 +299,6 @@ class _Table:
             self.addresses.append(key[0])
             self._names[key] = name
         return self._names[key]
-
-
-def _cache_dir():
-    from pathlib import Path
-
-    base = os.environ.get("NUMBA_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache")
-    d = Path(base) / "rtctl-audio-callbacks"
-    d.mkdir(parents=True, exist_ok=True)
-    return d
-
-
-def kernel_call(fn, args, name, fns: dict, imports: list) -> str:
-    """Source text calling kernel ``fn`` on ``args`` (named through ``name``, a :class:`_Table`),
-    importing it into the generated module by its module and name."""
-    import sys
-
-    py = getattr(fn, "py_func", None)
-    mod = sys.modules.get(getattr(py, "__module__", ""), None)
-    if py is None or getattr(mod, py.__name__, None) is not fn:
-        raise TypeError(f"{fn!r} is not a module-level numba kernel")
-    if fn not in fns:
-        fns[fn] = f"k{len(fns)}"
-        imports.append(f"from {py.__module__} import {py.__name__} as {fns[fn]}")
-    return f"{fns[fn]}({', '.join(name(a) for a in args)})"
 
 
 def build_callback(*, calls, snapshot, ctl, inputs, in_scale, sensed, outputs, out_scale, out, last,
@@ -387,28 +354,6 @@ def build_callback(*, calls, snapshot, ctl, inputs, in_scale, sensed, outputs, o
     keep = (scale, *name.scalars())
     fields["arrays"] = "\n".join(name.lines)  # after every name() call
     fields["n_tab"] = len(name.addresses)
-    module = load_generated(_MODULE.format(**fields))
+    module = load_generated(_MODULE.format(**fields), "rtctl_audio_cb")
     table = np.array(name.addresses, dtype=np.int64)
     return module.callback, (table, *keep)
-
-
-def load_generated(src: str):
-    """Import generated source as a module kept in a cache directory under a name hashing it
-    (so numba's on-disk cache of its kernels is found again by the next process)."""
-    import hashlib
-    import importlib.util
-    import sys
-
-    digest = hashlib.sha256(src.encode()).hexdigest()[:20]
-    path = _cache_dir() / f"rtctl_audio_cb_{digest}.py"
-    if not path.exists():
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(src)
-        tmp.replace(path)  # atomic: a concurrent run never imports half a file
-    module = sys.modules.get(path.stem)
-    if module is None:
-        spec = importlib.util.spec_from_file_location(path.stem, path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[path.stem] = module  # numba's cache refers to it by name
-        spec.loader.exec_module(module)
-    return module

@@ -40,7 +40,7 @@ import numpy as np
 
 from ..errors import DeviceError
 from . import _audio_kernels as K
-from .base import Snapshots, channel_map  # noqa: F401 - channel_map is part of this module's API
+from .base import Backend, Snapshots, channel_map  # noqa: F401 - channel_map is part of this module's API
 
 from ..safety import DEVICE_LOST, IO_XRUN
 
@@ -182,7 +182,7 @@ def open_backend(scene, layout, out, sensed) -> "AudioBackend":
                         guard=(float(io.silence_ms), int(io.xrun_limit), float(io.xrun_window)))
 
 
-class AudioBackend:
+class AudioBackend(Backend):
     """A full-duplex PortAudio stream serving one rig; see the module docstring.
 
     ``callback = True``: the engine calls :meth:`run`, not ``read``/``write``. The stream exists
@@ -349,9 +349,9 @@ class AudioBackend:
         """Compile (or load) the copy kernels for the exact array types the callback sees:
         sounddevice hands over ``np.frombuffer`` views, C-contiguous float32 (frames, channels)."""
         fin = np.frombuffer(bytearray(4 * self.block * max(self._n_in, 1)), dtype=np.float32)
-        fin.shape = -1, max(self._n_in, 1)
+        fin = fin.reshape(-1, max(self._n_in, 1))  # a view: fin is C-contiguous, never copied
         fout = np.frombuffer(bytearray(4 * self.block * self._n_out), dtype=np.float32)
-        fout.shape = -1, self._n_out
+        fout = fout.reshape(-1, self._n_out)  # a view, as above
         K.frames_to_rows(fin, self._inputs, self._in_scale, np.zeros_like(self._sensed))
         last = np.zeros_like(self._last)
         K.rows_to_frames(np.zeros_like(self._out), self._outputs, self._out_scale, fout, last)

@@ -16,6 +16,9 @@ thread only schedules parameter changes and writes the trace from snapshots (see
 
 Every backend has ``close()``: outputs to zero where the hardware allows, device released;
 idempotent and never raises. ``stats()`` returns a JSON-able dict for ``summary["io"]``.
+
+Every backend derives from :class:`Backend`, which states the whole protocol with its defaults:
+callers use the attributes, never probe for them.
 """
 
 from __future__ import annotations
@@ -132,3 +135,58 @@ def channel_map(values, n_rows: int, n_device: int | None, key: str, rows: str) 
         bad = int(m.max()) if m.max() >= n_device else int(m.min())
         raise DeviceError(f"{key} = {m.tolist()}: the device has channels 0..{n_device - 1}, not {bad}")
     return m
+
+
+class Backend:
+    """The backend protocol, with the defaults a backend overrides where it differs.
+
+    Attributes
+    ----------
+    callback : bool
+        The device's thread runs the block function (``run(rig, n_blocks, on_block)``, ``bind``).
+    paced : bool
+        The device's (or the wall) clock sets the pace: the polled engine sleeps to real time.
+    latency_blocks : int
+        Blocks from a drive block going out to the currents it caused coming back.
+    truth : ndarray or None
+        True plant states ``(n_channels, n_truth, block)`` (a simulation's); None on hardware.
+    probe_names : sequence of (name, unit)
+        Extra per-block signals in ``probe`` rows, traced as ``io.NAME``.
+    commands_only : float or None
+        The outputs are pin commands to a controller (fraction of ``max_voltage`` that means
+        "up"/"down"), not coil voltages: see :meth:`rtctl.safety.Limiter.commands_only`.
+    """
+
+    callback = False
+    paced = False
+    latency_blocks = 1
+    truth = None
+    probe_names: tuple = ()
+    probe = None
+    commands_only = None
+
+    def block_calls(self):
+        """``(before, after)`` kernel calls the rig's block function runs in place of
+        :meth:`read` and :meth:`write` (a device simulated in the block function), or None."""
+        return None
+
+    def read(self) -> int:
+        return 0
+
+    def write(self) -> int:
+        return 0
+
+    def compile(self) -> None:
+        """Compile (or load) the backend's kernels now, not in the first block."""
+
+    def reset(self) -> None:
+        """Back to the state before the first block."""
+
+    def bind(self, rig) -> None:
+        """A callback backend: build the device thread's callback around ``rig``'s block function."""
+
+    def close(self) -> None:
+        """Outputs to zero where the hardware allows, device released; idempotent, never raises."""
+
+    def stats(self) -> dict:
+        return {}

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import DeviceError, SceneError
 from ..safety import DEVICE_LOST
-from .base import channel_map
+from .base import Backend, channel_map
 
 FULL_SCALE_V = 10.0
 PRIME = 2  # blocks of zeros written before the start: the output latency
@@ -40,7 +40,7 @@ def driver_problem() -> str:
     return ""
 
 
-class DaqBackend:
+class DaqBackend(Backend):
     """Polled backend (see :mod:`rtctl.io.base`) over two NI-DAQmx tasks."""
 
     callback = False

@@ -4,7 +4,7 @@
 The client (``rtctl-emulator``) has one input port per drive channel (named like the channel,
 ``lateral.0``; port value x ``io.volts_per_fs`` = volts) and one output port per sensed row
 (``lateral.0.seg1``; amperes / ``io.amps_per_fs``): exactly the sensed rows an audio run has
-(``rtctl.rig.sensed_layout``), matched by name to the simulated groups' rows. Each JACK period it
+(``rtctl.models.sensed_layout``), matched by name to the simulated groups' rows. Each JACK period it
 converts the drive ports into a preallocated float64 block, advances the simulated groups (the
 ``sim`` backend's kernels and their contract, :mod:`rtctl.io.sim`) and writes that block's
 currents to its output ports: no latency of its own, as an analog amplifier and current sense
@@ -53,12 +53,12 @@ class Plant:
     """The simulated groups of a scene on one JACK period, with their port names and channel map."""
 
     def __init__(self, scene, fs: float, period: int):
+        from ..models import Models, sensed_layout
         from ..plant import TRUTH_NAMES
-        from ..simgroups import build_group
         from .audio import channel_map
+        from .sim import build_group
 
-        from ..rig import sensed_layout
-
+        models = Models(scene)
         # The rows an audio run senses (its Layout): the emulator publishes exactly those, by name.
         self.out_names = list(sensed_layout(scene)[0])
         self.in_names, groups, sim_rows = [], [], []
@@ -67,7 +67,7 @@ class Plant:
             n = g.grid[0] * g.grid[1]
             self.in_names += [f"{g.name}.{i}" for i in range(n)]
             try:
-                sim = build_group(scene, g, gi, fs, period)
+                sim = build_group(models, g, gi, fs, period)
             except RtctlError as e:
                 print(f"rtctl emulate audio: {e}; its drive channels are read, its sensed rows stay 0",
                       file=sys.stderr)

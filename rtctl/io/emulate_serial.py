@@ -110,18 +110,19 @@ class Firmware:
         self.fs = float(fs)
         self.B = max(1, int(round(chunk_s * self.fs)))
         if self.display == "dot":
-            from ..simgroups import build_group
+            from ..models import Models
+            from .sim import build_group
 
-            self.group = build_group(scene, g, 0, self.fs, self.B)
+            self.group = build_group(Models(scene), g, 0, self.fs, self.B)
             self.volts = float(g.dot.supply)
             self.travel = float(g.dot.travel)
         else:
+            from ..models import Models
             from ..plant.sma import SmaGroup
-            from ..simgroups import sma_taxel
 
             p = g.sma
             rows = g.grid[0]
-            self.group = SmaGroup(sma_taxel(g), self.fs, n, max_block=self.B, mech_fs=min(p.mech_fs, self.fs),
+            self.group = SmaGroup(Models(scene).sma(g), self.fs, n, max_block=self.B, mech_fs=min(p.mech_fs, self.fs),
                                   crossbar=True, rows=rows, slot=p.slot)
             self.group.f_ext[:] = p.push
             self.volts = float(g.max_voltage) * math.sqrt(rows)

@@ -30,6 +30,7 @@ import numpy as np
 from .. import safety
 from ..errors import DeviceError, SceneError
 from . import protocol as P
+from .base import Backend
 
 DEVICE_LOST = safety.DEVICE_LOST
 PIN_TYPES = ("dot", "sma")
@@ -163,7 +164,7 @@ class _InFlight:
         self.seq, self.kind, self.frame, self.t_tx, self.resends = seq, kind, frame, t_tx, 0
 
 
-class SerialBackend:
+class SerialBackend(Backend):
     """A pin controller behind a serial port (a polled backend; see :mod:`rtctl.io.base`).
 
     Build it with :func:`open_backend`.
@@ -192,6 +193,7 @@ class SerialBackend:
     callback = False
     paced = True
     truth = None
+    commands_only = COMMAND_THRESHOLD  # the firmware pulses the coils: the limiter sees commands
     probe_names = [("pins_up", ""), ("pins_down", ""), ("frames_sent", ""), ("frames_acked", ""),
                    ("resends", ""), ("rtt", "s")]
 

@@ -12,13 +12,102 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._numba import kernel
+from ..errors import SceneError
 from ..safety import OVERTEMP, PLANT_NONFINITE, SENSOR_SATURATED
+from .base import Backend
 
 # simulated-group status bits -> rig status bits
 _ADC_SATURATED, _NONFINITE, _OVERTEMP = 1, 2, 4
 
 
-class SimDevice:
+@kernel
+def group_status(s):
+    """A simulated group's status bits as the rig's."""
+    st = 0
+    if s & _ADC_SATURATED:
+        st |= SENSOR_SATURATED
+    if s & _NONFINITE:
+        st |= PLANT_NONFINITE
+    if s & _OVERTEMP:
+        st |= OVERTEMP
+    return st
+
+
+@kernel
+def deliver(src, dst):
+    """The currents of the previous block become this block's readings (one block of latency)."""
+    dst[:, :] = src
+    return 0
+
+
+# --- scene actuator groups -> simulated groups (one builder per type) ---------------------------
+
+def _bimorph(models, g, gi, fs, block):
+    from ..plant.bimorph import BimorphPlant, SimGroup
+    from ..plant.frontend import Amplifier, CurrentSense
+
+    s = g.sense
+    sense = CurrentSense(s.shunt, s.aa_cutoff, s.aa_order, s.bits, s.full_scale, s.noise,
+                         seed=models.scene.io.seed + 7919 * gi)
+    plant = BimorphPlant(models.beam(g), Amplifier(g.amplifier.bandwidth), sense, models.finger(g),
+                         n_modes=g.beam.modes)
+    return SimGroup(plant, fs, g.grid[0] * g.grid[1], max_block=max(block, 1))
+
+
+def _sma(models, g, gi, fs, block):
+    from ..plant.sma import SmaGroup
+
+    p = g.sma
+    group = SmaGroup(models.sma(g), fs, g.grid[0] * g.grid[1], max_block=max(block, 1), mech_fs=p.mech_fs,
+                     crossbar=p.crossbar, rows=g.grid[0], slot=p.slot)
+    group.f_ext[:] = p.push
+    return group
+
+
+def _pvdf(models, g, gi, fs, block):
+    from ..plant.pvdf import PvdfGroup
+
+    return PvdfGroup(models.pvdf(g), fs, max_block=max(block, 1))
+
+
+def _em(models, g, gi, fs, block):
+    from ..plant.em import EMGroup
+
+    return EMGroup(models.em(g), fs, g.grid[0] * g.grid[1], max_block=max(block, 1))
+
+
+def _dot(models, g, gi, fs, block):
+    from ..plant.dot import DotGroup
+
+    return DotGroup(models.dot(g), fs, g.grid[0] * g.grid[1], up=g.dot.up, max_block=max(block, 1))
+
+
+def _solenoid(models, g, gi, fs, block):
+    from ..plant.solenoid import SolenoidGroup
+
+    p = g.solenoid
+    return SolenoidGroup(models.solenoid(g), fs, g.grid[0] * g.grid[1], max_block=max(block, 1),
+                         substeps=p.substeps, levels=p.levels)
+
+
+#: actuator type -> builder(models, group, group index, fs, block)
+BUILDERS = {"bimorph": _bimorph, "sma": _sma, "pvdf": _pvdf, "em": _em, "dot": _dot,
+            "solenoid": _solenoid}
+
+
+def build_group(models, g, gi: int, fs: float, block: int):
+    """The simulated group of actuator group ``g`` (index ``gi`` in the scene), following the
+    simulated-group contract of :class:`SimDevice`; ``models`` is the scene's
+    :class:`rtctl.models.Models`."""
+    try:
+        builder = BUILDERS[g.type]
+    except KeyError:
+        raise SceneError(f"actuator.{g.name}: type {g.type!r} has no simulated plant yet") from None
+    return builder(models, g, gi, fs, block)
+
+
+class SimDevice(Backend):
     """Simulated groups, each driving a contiguous range of channels and sensed rows.
 
     Parameters
@@ -46,6 +135,15 @@ class SimDevice:
         # checked per block (a group's process() would check shapes every call).
         self._calls = [(g.kernel, (*g.args, drive[ch], self._next[sr], self.truth[ch]))
                        for g, ch, sr in groups]
+
+    def block_calls(self) -> tuple[list, list]:
+        """The device's work as kernels for the rig's block function, ``(before, after)``: before
+        the rig's stages, the previous block's currents become this block's readings (what
+        :meth:`read` does); after them, every group advances by the block just limited (what
+        :meth:`write` does). Each entry is ``(name, kernel, args, status map)``."""
+        before = [("sim read", deliver, (self._next, self.sensed), True)]
+        after = [(f"sim group {i}", kernel, args, group_status) for i, (kernel, args) in enumerate(self._calls)]
+        return before, after
 
     def read(self) -> int:
         """Fill ``sensed`` with the currents of the previous block (one block of latency)."""

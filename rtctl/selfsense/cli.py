@@ -43,7 +43,8 @@ def _parser():
 def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.0), beat=10.0,
         snr_db=60.0, mismatch=True, truth_modes=None) -> dict:
     """Everything ``rtctl selfsense`` computes, as a dict (see the module docstring)."""
-    from rtctl import rig, scene as scene_mod
+    from rtctl import scene as scene_mod
+    from rtctl.models import Models
     from rtctl.selfsense.facts import tmm_facts
     from rtctl.selfsense.plots import admittance_figure
     from rtctl.selfsense.sweep import finger_loads, run_case, sweep
@@ -53,14 +54,14 @@ def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.
     sc = scene_mod.load(scene_name, list(overrides))
     outdir = Path(out)
     outdir.mkdir(parents=True, exist_ok=True)
-    mats = rig._materials(sc)
+    models = Models(sc)
     result = {"scene": sc.scene.name, "groups": {}}
     fs = float(sc.timing.fs)
     for g in sc.actuator:
         if g.type != "bimorph":
             continue
-        fe = rig.beam_model(g, mats, sc)
-        finger = rig.finger_load(sc, g)
+        fe = models.beam(g)
+        finger = models.finger(g)
         kw = dict(fs=fs, block=int(sc.timing.block), amplifier_hz=g.amplifier.bandwidth,
                   aa_cutoff_hz=g.sense.aa_cutoff, aa_order=g.sense.aa_order, shunt=g.sense.shunt,
                   n_modes=truth_modes or converged_modes(fe, fs, int(g.beam.modes)))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from rtctl.selfsense.tmm import TMMBeam
 
-__all__ = ["tmm_facts", "scene_tmm_facts"]
+__all__ = ["tmm_facts"]
 
 
 def tmm_facts(fe, finger=None, n=4) -> dict:
@@ -39,11 +39,3 @@ def tmm_facts(fe, finger=None, n=4) -> dict:
     free = [float(f) for f in beam.natural_frequencies(n)]
     loaded = free if finger is None else [float(f) for f in beam.loaded_frequencies(finger, n)]
     return {"tmm_natural_frequencies_hz": free, "tmm_loaded_natural_frequencies_hz": loaded}
-
-
-def scene_tmm_facts(scene, group, n=4) -> dict:
-    """:func:`tmm_facts` for one actuator group of a scene (bimorph groups only)."""
-    from rtctl import rig
-
-    fe = rig.beam_model(group, rig._materials(scene), scene)
-    return tmm_facts(fe, rig.finger_load(scene, group), n)

@@ -76,6 +76,9 @@ class Observer:
         Refuse ill-conditioned frequencies (also for four segments, whose tip estimate is less
         fragile than the support stiffness that :func:`~rtctl.selfsense.observer.design` guards
         with ``MAX_COND_SUPPORT``).
+    wave : ndarray, shape (n_channels, block), optional
+        Where the rebuilt tip deflection goes (e.g. rows of a rig's estimate buffer); default a
+        new array.
 
     Attributes
     ----------
@@ -100,7 +103,7 @@ class Observer:
     """
 
     def __init__(self, beam, freqs, fs, block, frontend=None, window=None, image_load=None,
-                 max_cond=MAX_COND):
+                 max_cond=MAX_COND, wave=None):
         f = np.atleast_2d(np.asarray(freqs, dtype=float))
         f = np.where(np.isfinite(f), f, 0.0)
         if np.any(f < 0) or np.any(f >= fs / 2):
@@ -131,7 +134,12 @@ class Observer:
         self.lock_u = LockIn(n_ch, f, fs, self.window, hop=self.block)
         self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, self.window, hop=self.block)
         self.est = np.zeros((n_ch, n_t, N_EST, 2))
-        self.wave = np.zeros((n_ch, self.block))
+        if wave is None:
+            wave = np.zeros((n_ch, self.block))
+        elif wave.shape != (n_ch, self.block) or wave.dtype != np.float64 or not wave.flags.c_contiguous:
+            raise ModelError(f"wave must be C-contiguous float64 of shape {(n_ch, self.block)}")
+        self.wave = wave
+        self.wave[...] = 0.0
         self._u_out = np.zeros((n_ch, n_t, 2))
         self._i_out = np.zeros((n_ch * n_seg, n_t, 2))
 

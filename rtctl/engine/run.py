@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from . import safety
+from .. import _numba, safety
 
 
 @dataclass
 class RunResult:
-    """What :func:`run` returns: the summary (ARCHITECTURE.md ``run --json``), whether Ctrl-C
+    """What :func:`run` returns: the summary (what ``rtctl run --json`` prints), whether Ctrl-C
     ended it, and where the trace, summary.json and plot.png went (None without ``out_dir``)."""
 
     summary: dict
@@ -33,36 +33,26 @@ class RunResult:
 
 
 class _Progress:
-    """A one-line progress bar on a terminal, for runs longer than a few seconds of wall time."""
+    """A progress bar (tqdm) on a terminal, for runs longer than a couple of seconds of wall time;
+    ``update`` takes the blocks done so far."""
 
     def __init__(self, total: int, enabled: bool):
-        self.total = total
-        self.enabled = enabled and sys.stderr.isatty()
-        self.t0 = time.perf_counter()
-        self.last = 0.0
-        self.shown = False
+        self._bar = None
+        if enabled and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, unit="block", unit_scale=True, delay=2.0, mininterval=0.2,
+                             leave=False, file=sys.stderr, dynamic_ncols=True)
+        self._done = 0
 
     def update(self, done: int) -> None:
-        if not self.enabled:
-            return
-        now = time.perf_counter()
-        if now - self.last < 0.2:
-            return
-        self.last = now
-        el = now - self.t0
-        eta = el * (self.total - done) / max(done, 1)
-        if not self.shown and el + eta < 3.0:
-            return
-        self.shown = True
-        frac = done / self.total
-        bar = "#" * int(30 * frac)
-        sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f} %  {el:5.1f} s, {eta:5.1f} s left ")
-        sys.stderr.flush()
+        if self._bar is not None and done > self._done:
+            self._bar.update(done - self._done)
+            self._done = done
 
     def close(self) -> None:
-        if self.shown:
-            sys.stderr.write("\r" + " " * 70 + "\r")
-            sys.stderr.flush()
+        if self._bar is not None:
+            self._bar.close()
 
 
 def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress: bool = False) -> RunResult:
@@ -79,7 +69,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         possible and report the real-time factor.
     """
     from .rig import build
-    from .trace import TraceReader, TraceWriter
+    from ..trace import TraceReader, TraceWriter
 
     t_build = time.perf_counter()
     rig = build(scene)
@@ -130,6 +120,9 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         "faults": faults,
         "warnings": [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
         "build_s": build_s,
+        # how the block ran: one composed function or stages from Python; cached kernels or not
+        "block_function": rig.compose_note,
+        "numba_cache": _numba.CACHE_NOTE or "stamped with the package",
         "interrupted": interrupted,
         "channels": [],
     }

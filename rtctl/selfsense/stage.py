@@ -1,4 +1,4 @@
-"""The self-sensing stage of the block step: one observed bimorph group per call.
+"""The self-sensing stage of the block function: one observed bimorph group per stage.
 
 Imported only by scenes that observe (``control.observe`` or closed-loop control), so an
 open-loop scene never compiles it. The observer must pair each block of sensed currents with the
@@ -9,9 +9,9 @@ in a ring of ``L`` blocks.
 
 import numpy as np
 
-from ._numba import kernel
-from .safety import ESTIMATE_NONFINITE
-from .selfsense.rt import observer_process
+from .._numba import kernel
+from ..safety import ESTIMATE_NONFINITE
+from .rt import observer_process
 
 
 @kernel
@@ -51,3 +51,25 @@ def observe_stage(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan, i
             a += np.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
         amp[c] = a
     return ESTIMATE_NONFINITE if s != 0 else 0
+
+
+class ObserverStage:
+    """An observer with its drive delay ring and amplitude output: the stage's arguments and its
+    reset, for a rig to wrap into its stage list."""
+
+    ARG_NAMES = ("u_ref", "u_pend", "u_chan", "u_acc", "u_ring", "i_ref", "i_pend", "i_chan", "i_acc",
+                 "i_ring", "u_out", "i_out", "H", "scale", "est", "wave", "delay", "head", "out", "sensed",
+                 "amp")
+
+    def __init__(self, observer, latency_blocks: int, out, sensed, amp):
+        self.observer = observer
+        self.delay = np.zeros((max(1, int(latency_blocks)), observer.n_channels, observer.block))
+        self.head = np.zeros(1, dtype=np.int64)
+        self.amp = amp
+        self.args = dict(zip(self.ARG_NAMES, (*observer.args, self.delay, self.head, out, sensed, amp)))
+
+    def reset(self) -> None:
+        self.observer.reset()
+        self.delay[...] = 0.0
+        self.head[0] = 0
+        self.amp[...] = 0.0

@@ -20,11 +20,9 @@ import math
 
 import numpy as np
 
-SETTLE_BAND = 0.05  # settled once every later envelope estimate is within 5 % of the final one
+from ..stimulus import END_STOP_TYPES  # pins with no amplitude target
 
-#: Actuator types whose pins travel between two end stops: the stroke is set by the stops, not
-#: by the drive amplitude, so a perception-margin target (and an error against it) means nothing.
-END_STOP_TYPES = ("solenoid", "dot")
+SETTLE_BAND = 0.05  # settled once every later envelope estimate is within 5 % of the final one
 
 
 def fit_amplitudes(x: np.ndarray, t: np.ndarray, freqs) -> np.ndarray:
@@ -72,7 +70,7 @@ def settle_time(x, t, freqs, start, final) -> float | None:
 
 
 def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
-    """The ``channels`` list of the run summary (ARCHITECTURE.md), one row per channel."""
+    """The ``channels`` list of the run summary (what ``rtctl run --json`` prints), one row per channel."""
     fs, block = rig.fs, rig.block
     n = n_run_blocks * block
     t = np.arange(n) / fs
@@ -195,7 +193,7 @@ def print_table(summary: dict) -> None:
 
 def limited_by(limiter, ch: int) -> list[str]:
     """Which of the limiter's bounds changed channel ``ch``'s drive (its per-channel counts)."""
-    from .safety import MEAN_DC
+    from ..safety import MEAN_DC
 
     mean = "dc offset" if limiter.mean_kind[ch] == MEAN_DC else "duty"
     names = ("voltage", "slew/current", mean)

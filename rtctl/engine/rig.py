@@ -1,0 +1,334 @@
+"""build(scene) -> Rig: the buffers and the ordered stage list a scene needs, nothing else.
+
+The rig owns the block buffers (``out``: drive volts, ``sensed``: segment currents, both
+``(rows, block)`` float64) and runs one block with :meth:`Rig.advance`: the backend's read, the
+block function, the backend's write. The block function is the stage list composed into one
+compiled function (:mod:`rtctl.engine.compose`)::
+
+    params        drain the parameter queue into the pending arrays (schedule changes)
+    [sim read]    the simulated device: last block's currents become this block's readings
+    clear         zero the drive block
+    oscillators   sine tones and beat pairs              (scenes with sines)
+    pulses        square and pulse trains, held levels   (scenes with them)
+    limiter       the final limiter: always, and always after every stage that writes ``out``
+    observer G    self-sensing of bimorph group G        (control.observe)
+    [sim group i] the simulated plants advance by the limited block
+
+Everything a scene leaves out (see :mod:`rtctl.needs`) is neither imported nor compiled: e.g. an
+open-loop scene never touches ``rtctl.selfsense`` or ``cv2``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import SceneError
+from ..models import Models, n_channels, n_segments, sensed_layout
+from ..needs import needs, unavailable_message
+from .kernels import clear, snapshot
+from .queue import ParamQueue, drain
+from .stage import Stage
+
+
+def check_available(scene) -> None:
+    """Refuse, in one line, a scene needing a component this version does not have."""
+    n = needs(scene)
+    if n.unavailable:
+        c = n.unavailable[0]
+        raise SceneError(f"{scene.source}: {unavailable_message(c, n.needed[c])}")
+
+
+class Rig:
+    """What :func:`build` returns. Call :meth:`advance` once per block.
+
+    Threading: :meth:`apply_schedule` (the engine's thread) only posts to the parameter queue;
+    the block function, wherever it runs, is the one writer of every array its stages use.
+    """
+
+    def __init__(self, scene):
+        self.scene = scene
+        self.fs = float(scene.timing.fs)
+        self.block = int(scene.timing.block)
+        self.needs = needs(scene)
+        self.models = Models(scene)
+        names, groups, offsets = [], [], {}
+        for g in scene.actuator:
+            offsets[g.name] = len(names)
+            names += [f"{g.name}.{i}" for i in range(n_channels(g))]
+            groups += [g.name] * n_channels(g)
+        self.channel_names, self.channel_groups = names, groups
+        self.n_channels = len(names)
+        self.out = np.zeros((self.n_channels, self.block))
+        self.device = None
+        self.truth = None
+        self.sensed = np.zeros((0, self.block))
+        self.sensed_names: list[str] = []  # row names of ``sensed``, for trace readers
+        self.probes = []  # (trace signal name, unit, object with .probe, row)
+        self.truth_names = ()
+        self.estimated = np.full((self.n_channels, self.block), np.nan)  # observer tip wave, m
+        self.estimated_amp = np.full(self.n_channels, np.nan)  # observer tip amplitude, m
+        if scene.io.backend == "sim":
+            self._build_sim(scene)
+        else:
+            self._build_backend(scene)
+        from ..stimulus import Stimulus
+
+        self.stimulus = Stimulus(scene, offsets, self.n_channels, self.fs, self.block)
+        self.tones, self.targets_um = self.stimulus.tones, self.stimulus.targets_um
+        self.bank, self.pulses, self.render = self.stimulus.bank, self.stimulus.pulses, self.stimulus.render
+        self._build_limiter(scene)
+        self.observers = []
+        if scene.control.observe or scene.control.mode == "closed":
+            self._build_observers(scene)
+        self.stages = self._stages()
+        self._compile()
+
+    # --- construction -----------------------------------------------------------------------
+
+    def _build_sim(self, scene):
+        from ..io.sim import SimDevice, build_group
+        from ..plant import TRUTH_NAMES
+
+        groups, ch0, row0 = [], 0, 0
+        for gi, g in enumerate(scene.actuator):
+            n = n_channels(g)
+            sim = build_group(self.models, g, gi, self.fs, self.block)
+            rows = n * sim.n_sensed
+            groups.append((sim, slice(ch0, ch0 + n), slice(row0, row0 + rows)))
+            self.sensed_names += [f"{g.name}.{i}.{lab}" for i in range(n) for lab in sim.sensed_labels]
+            self.probes += [(f"{g.name}.{pn}", unit, sim, r) for r, (pn, unit) in enumerate(sim.probe_names)]
+            ch0, row0 = ch0 + n, row0 + rows
+        self.truth_names = TRUTH_NAMES
+        self.sensed = np.zeros((row0, self.block))
+        self.device = SimDevice(groups, self.out, self.sensed, len(TRUTH_NAMES))
+        self.truth = self.device.truth
+
+    def _build_backend(self, scene):
+        """A hardware backend (``rtctl.io.<backend>.open_backend``), opened now so a missing
+        device is reported before anything runs."""
+        import importlib
+
+        from ..io.base import Layout
+
+        rows, owner = sensed_layout(scene)
+        self.sensed_names = rows
+        self.sensed = np.zeros((len(rows), self.block))
+        types = [scene.group(g).type for g in self.channel_groups]
+        self.layout = Layout(self.fs, self.block, tuple(self.channel_names), tuple(self.channel_groups),
+                             tuple(types), tuple(rows), tuple(owner))
+        mod = importlib.import_module(f"rtctl.io.{scene.io.backend}")
+        self.device = mod.open_backend(scene, self.layout, self.out, self.sensed)
+        self.truth = self.device.truth
+        self.probes = [(f"io.{pn}", unit, self.device, r) for r, (pn, unit) in enumerate(self.device.probe_names)]
+
+    def _build_observers(self, scene):
+        """One self-sensing observer per bimorph group, on the scene's tone frequencies."""
+        from ..selfsense.stage import ObserverStage
+
+        if scene.stimulus.kind != "tones":
+            raise SceneError(f"{scene.source}: control.observe needs stimulus.kind = 'tones' (the observer "
+                             f"is designed on the tone frequencies; rendered stimuli change them), got "
+                             f"{scene.stimulus.kind!r}")
+        latency = scene.io.latency_blocks or int(self.device.latency_blocks)
+        ch0 = row0 = 0
+        for g in scene.actuator:
+            n, n_seg = n_channels(g), n_segments(g)
+            if g.type == "bimorph":
+                per = [[f for tn in self.tones if tn.channel == c for f in tn.freqs] for c in range(ch0, ch0 + n)]
+                width = max(1, max(len(p) for p in per))
+                freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
+                obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[ch0:ch0 + n])
+                st = ObserverStage(obs, latency, self.out[ch0:ch0 + n], self.sensed[row0:row0 + n * n_seg],
+                                   self.estimated_amp[ch0:ch0 + n])
+                self.observers.append((g.name, st))
+            ch0, row0 = ch0 + n, row0 + n * n_seg
+
+    def _build_limiter(self, scene):
+        from ..safety import Limiter
+
+        groups = [scene.group(name) for name in self.channel_groups]
+        loads = {g.name: self.models.drive_load(g) for g in scene.actuator}
+        lim = [g.limits for g in groups]
+        self.limiter = Limiter(
+            self.fs,
+            max_voltage=[g.max_voltage for g in groups],
+            slew=[x.slew for x in lim], current=[x.current for x in lim],
+            capacitance=[loads[g.name][0] for g in groups], resistance=[loads[g.name][1] for g in groups],
+            temperature=[x.temperature for x in lim], ambient=[x.ambient for x in lim],
+            loss_tangent=[x.loss_tangent for x in lim], thermal_resistance=[x.thermal_resistance for x in lim],
+            thermal_tau=[x.thermal_tau for x in lim],
+            # mean bounds from the group's type (the schema admits them only there); a bound of 1
+            # can never be reached, so it costs nothing
+            dc_offset=[g.max_voltage * x.dc_offset if getattr(x, "dc_offset", 1.0) < 1.0 else np.inf
+                       for g, x in zip(groups, lim)],
+            dc_tau=[getattr(x, "dc_tau", 1.0) for x in lim],
+            duty=[x.duty if getattr(x, "duty", 1.0) < 1.0 else np.inf for x in lim],
+            duty_tau=[getattr(x, "duty_tau", 1.0) for x in lim],
+        )
+        if self.device.commands_only is not None:  # pin commands: the firmware pulses the coils
+            self.limiter.commands_only(self.device.commands_only * np.array([g.max_voltage for g in groups]))
+
+    def _stages(self) -> list:
+        """The block function's stages, in order (see the module docstring)."""
+        from ..safety import limit_block
+
+        pending = [x.pending for x in (self.bank, self.pulses) if x is not None]
+        self.queue = ParamQueue(pending)
+        for x in (self.bank, self.pulses):
+            if x is not None:
+                tid = self.queue.target_id(x.pending)
+                x.route(lambda row, cols, values, tid=tid: self.queue.post(tid, row, cols, values))
+        calls = self.device.block_calls()
+        self._device_in_block = calls is not None
+        before, after = calls or ([], [])
+        wrap = [Stage(name, k, dict(enumerate(args)), status) for name, k, args, status in before]
+        stages = [Stage("params", drain, dict(zip(("ring", "heads", "targets"), self.queue.args)),
+                        reset=self.queue.reset), *wrap,
+                  Stage("clear", clear, {"out": self.out}, status=None)]
+        if self.bank is not None:
+            from ..dsp import osc_bank_process
+
+            stages.append(Stage("oscillators", osc_bank_process,
+                                dict(zip(("state", "pending", "chan"), self.bank.args), out=self.out), status=None))
+        if self.pulses is not None:
+            from ..dsp import pulse_process
+
+            stages.append(Stage("pulses", pulse_process,
+                                dict(zip(("state", "pending"), self.pulses.args), out=self.out), status=None))
+        stages.append(Stage("limiter", limit_block,
+                            dict(zip(("x", "state", "params", "fade", "counts"), (self.out, *self.limiter.args))),
+                            reset=self.limiter.reset))
+        if self.observers:
+            from ..selfsense.stage import observe_stage
+
+            stages += [Stage(f"observer {name}", observe_stage, st.args, reset=st.reset) for name, st in self.observers]
+        stages += [Stage(name, k, dict(enumerate(args)), status) for name, k, args, status in after]
+        return stages
+
+    def _compile(self):
+        """Compose the stages into one block function and compile (or load from numba's cache)
+        it and every kernel now, not in the first block; then everything back to rest."""
+        from .compose import compose
+
+        try:
+            self._block = compose(self.stages)
+            self.compose_note = "composed"
+        except TypeError as e:  # the stages run one by one from Python instead
+            self._block = None
+            self.compose_note = f"stages called from Python ({e})"
+        self.step()
+        self.device.compile()
+        self.reset()
+        self.device.bind(self)  # a callback backend builds its callback now, not at run()
+
+    def reset(self) -> None:
+        """Every stage and the buffers back to rest (no block function may run meanwhile)."""
+        self.out[...] = 0.0
+        self.estimated[...] = np.nan  # observed channels' rows: zeros, by their stage's reset
+        self.stimulus.reset()
+        for s in self.stages:
+            if s.reset is not None:
+                s.reset()
+        if self._device_in_block:
+            self.device.reset()
+
+    # --- per block ----------------------------------------------------------------------------
+
+    def apply_schedule(self, k: int) -> None:
+        """Hand the parameter changes due at block ``k`` to the block function (it applies them,
+        ramped across that block, before anything else in the block). Engine thread only."""
+        self.stimulus.apply(k)
+        self.queue.publish()
+
+    def kernel_calls(self) -> list:
+        """The block function as ``[(kernel, args)]``, for a callback backend's compiled callback."""
+        if self._block is not None:
+            return [(self._block.fn, (self._block.table,))]
+        return [(s.kernel, tuple(s.args.values())) for s in self.stages]
+
+    def step(self) -> int:
+        """The block function without the backend's I/O: status bits (a callback backend calls
+        this from its thread)."""
+        if self._block is not None:
+            return self._block()
+        status = 0
+        for s in self.stages:
+            status |= s.call()
+        return status
+
+    def snapshot_call(self, snaps) -> tuple:
+        """``(kernel, args)`` of :meth:`snapshot` into ``snaps``; the slot is the last argument."""
+        return (snapshot, (self.out, self.sensed, self.estimated, self.estimated_amp, self.limiter.temperature,
+                           snaps.out, snaps.sensed, snaps.estimated, snaps.estimated_amp, snaps.temperature))
+
+    def advance(self) -> int:
+        """One block: the backend's read, the block function, the backend's write; status bits."""
+        if self._device_in_block:
+            return self.step()
+        status = self.device.read()
+        status |= self.step()
+        status |= self.device.write()
+        return status
+
+    def snapshot(self, snaps, slot: int) -> None:
+        """Copy this block's outputs, readings, estimates and temperatures into ``snaps`` (a
+        :class:`rtctl.io.base.Snapshots`) at ``slot``, for the trace (no allocation)."""
+        fn, args = self.snapshot_call(snaps)
+        fn(*args, slot)
+
+    # --- trace ----------------------------------------------------------------------------------
+
+    def trace_signals(self) -> dict:
+        sig = {"drive": ("V", self.n_channels), "sensed": ("A", self.sensed.shape[0])}
+        if self.truth is not None:
+            sig.update({"tip_um": ("um", self.n_channels), "tip_velocity": ("m/s", self.n_channels),
+                        "tip_force": ("N", self.n_channels), "voltage": ("V", self.n_channels)})
+        for name, unit, _, _ in self.probes:
+            sig[name] = (unit, 1)
+        sig["target_um"] = ("um", self.n_channels, 0)
+        sig["estimated_um"] = ("um", self.n_channels, 0)
+        if self.observers:  # the rebuilt tip waveform, one io latency behind the drive
+            sig["estimated_tip_um"] = ("um", self.n_channels)
+        sig["temperature"] = ("degC", self.n_channels, 0)
+        return sig
+
+    def record(self, rec, status: int, compute_us: float, snaps=None, slot: int = 0) -> None:
+        """Fill trace record ``rec`` from the rig's buffers, or from ``snaps[slot]`` (a callback
+        backend's ring, the only consistent copy while the device thread runs on) when given."""
+        if snaps is None:
+            out, sensed, est, amp, temp = (self.out, self.sensed, self.estimated, self.estimated_amp,
+                                           self.limiter.temperature)
+        else:
+            out, sensed, est, amp, temp = (snaps.out[slot], snaps.sensed[slot], snaps.estimated[slot],
+                                           snaps.estimated_amp[slot], snaps.temperature[slot])
+        rec["status"] = status
+        rec["compute_us"] = compute_us
+        rec["drive"][...] = out
+        rec["sensed"][...] = sensed
+        if self.truth is not None:  # only a simulation, always polled
+            rec["tip_um"][...] = self.truth[:, 0, :]
+            rec["tip_um"] *= 1e6
+            rec["tip_velocity"][...] = self.truth[:, 1, :]
+            rec["tip_force"][...] = self.truth[:, 2, :]
+            rec["voltage"][...] = self.truth[:, 3, :]
+        for name, _, sim, r in self.probes:
+            rec[name][0] = sim.probe[r, :self.block]
+        rec["target_um"][...] = self.targets_um
+        rec["estimated_um"][...] = amp
+        rec["estimated_um"] *= 1e6
+        if self.observers:
+            rec["estimated_tip_um"][...] = est
+            rec["estimated_tip_um"] *= 1e6
+        rec["temperature"][...] = temp
+
+
+def build(scene) -> Rig:
+    """Construct, import and compile exactly what ``scene`` needs.
+
+    Raises
+    ------
+    SceneError
+        If the scene needs a component this version of rtctl does not have.
+    """
+    check_available(scene)
+    return Rig(scene)

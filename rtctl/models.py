@@ -1,0 +1,236 @@
+"""Scene actuator groups -> models: beam, finger, plant, observer design and limiter load, and the
+rows a run senses. Built once per group and shared by everything that asks for them (the rig, the
+simulated device, the emulators, ``rtctl model``, ``rtctl selfsense``), so an observed bimorph
+group builds its beam once, and every reader derives a group's segment count from one place.
+
+Nothing here simulates: :mod:`rtctl.io.sim` wraps these models into simulated groups.
+"""
+
+from __future__ import annotations
+
+import math
+
+from .errors import SceneError
+
+#: Largest condition number of the in-loop observer's inversion: the two-segment designs of the
+#: bundled beams sit at 5-8; beyond 1e4 the current noise would dominate the estimate.
+OBSERVER_MAX_COND = 1e4
+
+
+def materials(scene) -> dict:
+    """The materials the scene's bimorph layers use: built-ins, or the scene's tables."""
+    from .plant.materials import BUILTIN, material
+
+    names = {layer.material for a in scene.actuator if a.type == "bimorph" for layer in a.beam.layers}
+    out = {}
+    for name in names:
+        table = scene.materials.get(name)
+        out[name] = material(name, dict(table) if table else None) if (table or name not in BUILTIN) else BUILTIN[name]
+    return out
+
+
+def n_segments(group) -> int:
+    """Segment electrodes per bimorph channel (the sensed rows of each of its channels); 0 for
+    actuator types that sense nothing."""
+    return len(group.beam.segments) if group.type == "bimorph" else 0
+
+
+def n_channels(group) -> int:
+    return group.grid[0] * group.grid[1]
+
+
+def sensed_layout(scene):
+    """Sensed rows on hardware: each bimorph channel's segment currents, channel-major (the rows
+    the simulated bimorph writes); other actuator types sense nothing. Returns ``(row names,
+    drive channel of each row)``."""
+    rows, owner, ch0 = [], [], 0
+    for g in scene.actuator:
+        n, n_seg = n_channels(g), n_segments(g)
+        rows += [f"{g.name}.{i}.seg{j}" for i in range(n) for j in range(n_seg)]
+        owner += [ch0 + i for i in range(n) for _ in range(n_seg)]
+        ch0 += n
+    return rows, owner
+
+
+def finger_params(scene, direction: str):
+    """The finger's Maxwell parameter table for ``direction``: ``finger.lateral``/``normal``, or
+    with ``finger.subject`` set, that subject's set in ``direction`` whose preload is nearest
+    ``finger.preload`` (nearest on a log scale: loads scale roughly with preload ratios).
+    Returns ``(table, where)``, ``where`` naming the set for reports."""
+    f = scene.finger
+    if not f.subject:
+        return f[direction], f"finger.{direction}"
+    sets = [(i, s) for i, s in enumerate(f.subjects) if s.name == f.subject and s.direction == direction]
+    if not sets:
+        have = sorted({f"{s.name}/{s.direction}" for s in f.subjects}) or ["none"]
+        raise SceneError(f"{scene.source}: finger.subject = {f.subject!r} has no {direction} set in "
+                         f"finger.subjects (have {', '.join(have)})")
+    p = max(f.preload, 1e-6)
+    i, best = min(sets, key=lambda t: abs(math.log(max(t[1].preload, 1e-6) / p)))
+    return best, f"finger.subjects.{i} ({best.name}, {direction}, {best.preload:g} N)"
+
+
+def finger_load(scene, group):
+    """The generalized Maxwell finger on ``group``'s tips, or None without contact."""
+    from .plant.finger import MaxwellLoad
+
+    if not scene.finger.contact:
+        return None
+    f, _ = finger_params(scene, group.direction)
+    return MaxwellLoad(f.mass, f.k0, tuple((b.k, b.tau) for b in f.branches))
+
+
+class Models:
+    """The models of one scene's actuator groups, each built on first use and kept.
+
+    Parameters
+    ----------
+    scene : rtctl.scene.Scene
+    """
+
+    def __init__(self, scene):
+        self.scene = scene
+        self._cache: dict = {}
+
+    def _get(self, key, build):
+        if key not in self._cache:
+            self._cache[key] = build()
+        return self._cache[key]
+
+    def materials(self) -> dict:
+        return self._get("materials", lambda: materials(self.scene))
+
+    def finger(self, group):
+        """The finger on ``group``'s tips (:func:`finger_load`), or None without contact."""
+        return self._get(("finger", group.name), lambda: finger_load(self.scene, group))
+
+    def beam(self, group):
+        """The finite-element beam of a bimorph group (no finger). A ``support.type = "actuator"``
+        root sits on the moving part of the ``em`` group named by ``support.actuator`` (the
+        bimodal display), whose suspension and armature give an elastic root with its mass."""
+        def build():
+            from .plant.beam import BeamSpec, Layer, SupportSpec, build_beam
+
+            b, mats = group.beam, self.materials()
+            layers = tuple(Layer(mats[layer.material], layer.thickness) for layer in b.layers)
+            spec = BeamSpec(b.length, b.width, layers, b.connection, tuple(b.segments), b.damping, b.elements)
+            sup = group.support
+            if sup.type == "actuator":
+                return build_beam(spec, self.carrier(group).support_spec())
+            return build_beam(spec, SupportSpec(sup.type, sup.k, sup.k_rot))
+
+        return self._get(("beam", group.name), build)
+
+    def carrier(self, group):
+        """The electromagnetic actuator a bimorph group rides on (seed 000 Sec. 3.3, R_m)."""
+        scene, name = self.scene, group.support.actuator
+        where = f"actuator.{group.name}.support.actuator"
+        carrier = scene.group(name)  # a SceneError naming the groups there are
+        if carrier.type != "em":
+            raise SceneError(f"{scene.source}: {where} = {name!r} is a {carrier.type!r} group; a bimorph can "
+                             "ride on an electromagnetic ('em') actuator")
+        if tuple(carrier.grid) != tuple(group.grid):
+            raise SceneError(f"{scene.source}: {where} = {name!r}: grids differ ({list(carrier.grid)} vs "
+                             f"{list(group.grid)}); each bimorph rides on its own carrier pin")
+        return self.em(carrier)
+
+    def em(self, group):
+        """The electromagnetic perpendicular actuator of an ``em`` group (bimodal display)."""
+        def build():
+            from .plant.em import EMPlant
+
+            p, finger = group.em, self.finger(group)
+            return EMPlant(resistance=p.resistance, inductance=p.inductance, force_constant=p.force_constant,
+                           armature_mass=p.armature_mass, payload_mass=p.payload_mass, stiffness=p.stiffness,
+                           damping=p.damping, lateral_stiffness=p.lateral_stiffness,
+                           tilt_stiffness=p.tilt_stiffness, armature_inertia=p.armature_inertia,
+                           preload=p.preload if finger is not None else 0.0, finger=finger)
+
+        return self._get(("em", group.name), build)
+
+    def dot(self, group):
+        """The latching Dot Braille pin of a ``dot`` group."""
+        def build():
+            from .plant.dot import DotPin
+
+            p, finger = group.dot, self.finger(group)
+            return DotPin(supply=p.supply, travel=p.travel, resistance=p.resistance, inductance=p.inductance,
+                          force_constant=p.force_constant, mass=p.mass, damping=p.damping,
+                          latch_force=p.latch_force, finger=finger,
+                          preload=p.preload if finger is not None else 0.0)
+
+        return self._get(("dot", group.name), build)
+
+    def solenoid(self, group):
+        """The polarized solenoid pin of a ``solenoid`` group."""
+        def build():
+            from .plant.solenoid import SolenoidPin
+
+            p, finger = group.solenoid, self.finger(group)
+            return SolenoidPin(resistance=p.resistance, inductance=p.inductance, force_constant=p.force_constant,
+                               mass=p.mass, spring=p.spring, spring_preload=p.spring_preload, damping=p.damping,
+                               stroke=p.stroke, stop_stiffness=p.stop_stiffness,
+                               stop_damping_ratio=p.stop_damping_ratio, finger=finger,
+                               preload=p.preload if finger is not None else 0.0)
+
+        return self._get(("solenoid", group.name), build)
+
+    def pvdf(self, group):
+        """The PVDF plate of a ``pvdf`` group with the scene's finger on ``plate.finger_cell``."""
+        def build():
+            from .plant.pvdf import PvdfPlate
+
+            p, finger = group.plate, self.finger(group)
+            pc = tuple(p.probe_cells)
+            return PvdfPlate(rows=group.grid[0], cols=group.grid[1], plate_length=p.length, plate_width=p.width,
+                             plate_thickness=p.thickness, plate_E=p.E, plate_nu=p.nu, plate_rho=p.rho,
+                             gap=p.gap, film_thickness=p.film_thickness, zeta=p.damping,
+                             max_mode_hz=p.max_mode_hz, amplifier_bandwidth_hz=group.amplifier.bandwidth,
+                             finger=finger, finger_cell=tuple(p.finger_cell),
+                             preload=self.scene.finger.preload if finger is not None else 0.0,
+                             probe_cells=(pc[:2], pc[2:]))
+
+        return self._get(("pvdf", group.name), build)
+
+    def sma(self, group):
+        """The SMA taxel model of an ``sma`` group (no simulation state: also the limiter's load)."""
+        def build():
+            from .plant.sma import SmaTaxel
+
+            p = group.sma
+            return SmaTaxel(prestrain=p.prestrain, h_still=p.h_still, h_forced=p.h_forced, cooling=group.cooling,
+                            t_ambient=group.limits.ambient, t_max=p.t_max, t_cut=p.t_cut)
+
+        return self._get(("sma", group.name), build)
+
+    def drive_load(self, group) -> tuple[float, float]:
+        """``(capacitance F, resistance ohm)`` a channel of ``group`` drives (one of them is 0): what
+        the limiter's current bound needs, whatever the backend (current = C dV/dt or V / R)."""
+        t = group.type
+        if t == "bimorph":
+            return self.beam(group).capacitance(), 0.0
+        if t == "pvdf":
+            return self.pvdf(group).capacitance, 0.0
+        if t == "em":
+            return 0.0, group.em.resistance
+        if t == "solenoid":
+            return 0.0, group.solenoid.resistance
+        if t == "dot":
+            return 0.0, group.dot.resistance
+        if t == "sma":
+            return 0.0, self.sma(group).resistance
+        raise SceneError(f"actuator.{group.name}: the limiter needs the electrical load of a {t!r} "
+                         "actuator, which this version cannot model yet")
+
+    def observer(self, group, freqs, fs: float, block: int, wave=None):
+        """The self-sensing observer of a bimorph group on ``freqs`` (Hz, ``(n_channels, width)``,
+        0 for an unused slot): the transfer-matrix beam under the finger, the front end of the
+        group's amplifier and sense chain; the rebuilt tip wave goes into ``wave``. An
+        ill-conditioned tone is refused (ModelError)."""
+        from .selfsense.frontend import FrontEnd
+        from .selfsense.rt import Observer
+        from .selfsense.tmm import TMMBeam
+
+        front = FrontEnd(fs, group.amplifier.bandwidth, group.sense.aa_cutoff, group.sense.aa_order)
+        return Observer(TMMBeam.from_fe(self.beam(group)), freqs, fs, block, front,
+                        image_load=self.finger(group), max_cond=OBSERVER_MAX_COND, wave=wave)
