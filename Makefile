@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.rtctl-installed
 
-.PHONY: demo test bench docs clean
+.PHONY: demo test test-all bench docs clean
 
 # Set-up, once per pyproject change: the system libraries of the audio path (tools/sysdeps.sh
 # installs them where it can, else prints the command), then the package with its test extras.
@@ -19,6 +19,12 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# The suite on Python 3.10-3.13, each in a rebuilt .venv-3.X (fresh resolve), after the same
+# system set-up as `make test`; one line per version at the end (tools/test_all.sh).
+test-all:
+	@bash tools/sysdeps.sh
+	bash tools/test_all.sh $(PYTEST_ARGS)
 
 bench: $(STAMP)
 	$(PY) bench/loop.py

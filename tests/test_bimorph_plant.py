@@ -260,10 +260,15 @@ def test_simgroup_impulse_matches_the_dense_discrete_model(fe, finger):
     # The tip signals sum modal terms that cancel (static correction): ~5e-12, the same as
     # the plain eigenbasis; the voltage is one state.
     assert np.all(err[:3] < 2e-11) and err[3] < 1e-14
+    # The plain eigenbasis is in the same accuracy class: both errors are the round-off of the
+    # computed eigenbasis (cond ~170), not of the recursion (either form run in long double moves
+    # them by < 4e-15). Which of the two comes out ahead depends on the LAPACK build and the BLAS
+    # kernel it picks: cascade / plain was 0.06 to 3.3 over SciPy 1.15-1.18 with and without
+    # OPENBLAS_CORETYPE=Haswell (each 2.5e-13 to 8.4e-12), so both are held to one bound, unordered.
     plain = to_modal(group.sysd)
     hp, _ = plain.sys.simulate(drive[0])
     err_plain = np.max(np.abs(hp[:, :3] - h[:, :3]), axis=0) / np.max(np.abs(h[:, :3]), axis=0)
-    assert np.all(err[:3] < 1.5 * err_plain + 1e-13)
+    assert np.all(err_plain < 2e-11)
     # The anti-aliased currents (before the ADC) of the realization that runs.
     rows = slice(4, 4 + plant.n_seg)
     hz, _ = group.modal.sys.simulate(drive[0])

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import scipy.linalg
 import scipy.signal
 from scipy.integrate import solve_ivp
 
@@ -286,6 +287,27 @@ def test_cascade_modal_has_exact_structural_zeros_and_the_same_io_map():
     # The plain eigendecomposition mixes the subsystems: same map, no exact zeros.
     plain = to_modal(sysd)
     assert not plain.is_cascade and np.count_nonzero(plain.sys.C) > np.count_nonzero(C)
+
+
+def test_c2d_keeps_a_cascade_exact_whatever_the_matrix_exponential_leaves(monkeypatch):
+    """SciPy 1.18's expm leaves round-off (~1e-14) where a cascade's upstream blocks must be 0;
+    c2d sets them from the coupling graph, so the cascade realization does not depend on it."""
+    sys, blocks = cascade()
+    exact = c2d(sys, DT)
+    real_expm = scipy.linalg.expm
+
+    def fill(M):   # an exponential with round-off in every zero entry
+        E = real_expm(M)
+        E[E == 0.0] = 1e-13 * np.abs(E).max()
+        return E
+
+    monkeypatch.setattr(scipy.linalg, "expm", fill)
+    sysd = c2d(sys, DT)
+    for i, bi in enumerate(blocks):
+        for bj in blocks[i + 1:]:
+            assert np.all(sysd.A[np.ix_(bi, bj)] == 0.0)
+    assert np.array_equal(sysd.A == 0.0, exact.A == 0.0) and np.array_equal(sysd.B, exact.B)
+    assert to_modal(sysd, blocks=blocks).is_cascade
 
 
 def test_unit_input_scales_each_mode_exactly():

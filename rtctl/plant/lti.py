@@ -4,7 +4,7 @@ The simulated rig runs every linear plant as a discrete recursion at the loop ra
 turns a continuous model ``x' = A x + B u, y = C x + D u`` into that recursion without any
 integrator error: the matrix exponential of a Van Loan block matrix gives the exact solution for
 a stated model of the input between samples (:func:`c2d`). What remains is the *input model*
-(REFERENCES.md, Numerics): a DAC holds each sample, so ``"zoh"`` is exact for the rig; a
+(docs/physics.md, Sec. 4.2): a DAC holds each sample, so ``"zoh"`` is exact for the rig; a
 continuous sine is better served by ``"foh"`` or, exactly, by :func:`augment_tones`.
 
 :func:`to_modal` then rewrites the discrete recursion in real block-diagonal form (1x1 blocks for
@@ -194,6 +194,30 @@ class StateSpace:
                           self.input_names, self.output_names)
 
 
+def _expm_structured(M):
+    """``expm(M)`` with exact zeros wherever ``M``'s coupling graph has no path.
+
+    ``exp(M)[i, j]`` is exactly zero when no chain ``M[i, k1] M[k1, k2] ... M[kr, j]`` of
+    nonzero entries links ``j`` to ``i`` (every power of ``M`` is zero there). Whether the
+    computed exponential keeps those zeros is a detail of its implementation and its LAPACK:
+    SciPy 1.15-1.17 keep them for the bimorph plant (not for every model), 1.18 leaves round-off
+    there, ~1e-14 of the norm, enough for ``to_modal(..., blocks=...)`` to refuse the cascade.
+    They are set from the graph here: a cascade stays exactly a cascade (no upstream state sees
+    a downstream one) whatever the SciPy version, and every such entry is exact.
+    """
+    E = sla.expm(M)
+    n = M.shape[0]
+    reach = (M != 0.0) | np.eye(n, dtype=bool)
+    while True:   # transitive closure by repeated squaring: <= log2(n) products
+        r = reach.astype(np.float64)
+        nxt = (r @ r) > 0.0
+        if np.array_equal(nxt, reach):
+            break
+        reach = nxt
+    E[~reach] = 0.0
+    return E
+
+
 def c2d(sys: StateSpace, dt: float, method: str = "zoh") -> StateSpace:
     """Discretize exactly by the matrix exponential (Van Loan's block-matrix method).
 
@@ -209,7 +233,7 @@ def c2d(sys: StateSpace, dt: float, method: str = "zoh") -> StateSpace:
 
         ``"zoh"``: each input sample is held for one sample period. This is what a DAC outputs
         (a staircase), so it is the exact model of the simulated rig and the default. For a
-        sampled *continuous* sine it adds a half-sample delay (REFERENCES.md: 2.7e-2 off at
+        sampled *continuous* sine it adds a half-sample delay (docs/physics.md, Sec. 4.2: 2.7e-2 off at
         250 Hz, 48 kHz).
 
         ``"foh"``: first-order (triangle) hold, the input is the straight line through the
@@ -220,7 +244,9 @@ def c2d(sys: StateSpace, dt: float, method: str = "zoh") -> StateSpace:
     Returns
     -------
     StateSpace
-        Discrete system with ``dt`` set; ``C`` is unchanged for ``"zoh"``.
+        Discrete system with ``dt`` set; ``C`` is unchanged for ``"zoh"``. Entries that no
+        path of the continuous model's couplings reaches are exactly zero (e.g. the upstream
+        blocks of a cascade), whatever the SciPy version.
 
     Examples
     --------
@@ -240,7 +266,7 @@ def c2d(sys: StateSpace, dt: float, method: str = "zoh") -> StateSpace:
         em = np.zeros((n + m, n + m))
         em[:n, :n] = sys.A * dt
         em[:n, n:] = sys.B * dt
-        ms = sla.expm(em)
+        ms = _expm_structured(em)
         return sys._replace(A=ms[:n, :n], B=ms[:n, n:], dt=dt)
     if method == "foh":
         # expm([[A, B, 0], [0, 0, I/dt], [0, 0, 0]] dt) gives Phi, Gamma1 and Gamma2 (the ramp
@@ -249,7 +275,7 @@ def c2d(sys: StateSpace, dt: float, method: str = "zoh") -> StateSpace:
         em[:n, :n] = sys.A * dt
         em[:n, n:n + m] = sys.B * dt
         em[n:n + m, n + m:] = np.eye(m)
-        ms = sla.expm(em)
+        ms = _expm_structured(em)
         phi, g1, g2 = ms[:n, :n], ms[:n, n:n + m], ms[:n, n + m:]
         return sys._replace(A=phi, B=g1 - g2 + phi @ g2, D=sys.D + sys.C @ g2, dt=dt)
     raise ModelError(f"unknown discretization method {method!r}; use 'zoh' or 'foh'")
