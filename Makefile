@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml tools/sysdeps.sh
 	@touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/rtctl run line-bimorph-5 --out out/demo
+	$(VENV)/bin/rtctl run line-bimorph-5-closed --out out/demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q

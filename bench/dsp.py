@@ -52,14 +52,14 @@ def drive_osc(state, pending, chan, out, n_blocks, mode):
 
 @njit(nogil=True)
 def drive_pulse(state, pending, out, n_blocks):
-    for b in range(n_blocks):
+    for _ in range(n_blocks):
         out[:] = 0.0
         K.pulse_process(state, pending, out)
 
 
 @njit(nogil=True)
 def drive_lockin(ref, pending, chan, acc, ring, x, out, n_blocks):
-    for b in range(n_blocks):
+    for _ in range(n_blocks):
         K.lockin_process(ref, pending, chan, acc, ring, x, out)
 
 
@@ -140,19 +140,22 @@ def main():
         bank = OscillatorBank(48, chan, FS, 200.0 + np.arange(n_tones), 1.0, ramp=BLOCK)
         out = np.zeros((48, BLOCK))
         if not compile_s:
-            compile_s["osc_bank_process"] = first_call(lambda: drive_osc(*bank.args, out, 1, 0))
-        np_ns = best_time(lambda: numpy_osc(n_tones, nb_np), 3) / (nb_np * BLOCK * n_tones) * 1e9
+            compile_s["osc_bank_process"] = first_call(lambda bank=bank, out=out: drive_osc(*bank.args, out, 1, 0))
+        np_ns = best_time(lambda n_tones=n_tones: numpy_osc(n_tones, nb_np), 3) / (nb_np * BLOCK * n_tones) * 1e9
         for mode, label in ((0, "steady"), (1, "amp change every block"), (2, "freq change every block")):
             bank.reset()
-            ns = best_time(lambda: drive_osc(*bank.args, out, nb, mode)) / (nb * BLOCK * n_tones) * 1e9
-            rows.append(dict(kernel="osc_bank_process", case=f"{n_tones} tones, {label}", unit="ns/tone-sample", ns=ns, numpy_ns=np_ns, speedup=np_ns / ns))
+            secs = best_time(lambda bank=bank, out=out, mode=mode: drive_osc(*bank.args, out, nb, mode))
+            ns = secs / (nb * BLOCK * n_tones) * 1e9
+            rows.append(dict(kernel="osc_bank_process", case=f"{n_tones} tones, {label}", unit="ns/tone-sample",
+                             ns=ns, numpy_ns=np_ns, speedup=np_ns / ns))
 
     train = PulseTrain(48, FS, 100.0 + np.arange(48), 0.5)
     out = np.zeros((48, BLOCK))
     compile_s["pulse_process"] = first_call(lambda: drive_pulse(*train.args, out, 1))
     ns = best_time(lambda: drive_pulse(*train.args, out, nb)) / (nb * BLOCK * 48) * 1e9
     np_ns = best_time(lambda: numpy_pulse(48, nb_np), 3) / (nb_np * BLOCK * 48) * 1e9
-    rows.append(dict(kernel="pulse_process", case="48 channels", unit="ns/channel-sample", ns=ns, numpy_ns=np_ns, speedup=np_ns / ns))
+    rows.append(dict(kernel="pulse_process", case="48 channels", unit="ns/channel-sample",
+                     ns=ns, numpy_ns=np_ns, speedup=np_ns / ns))
 
     window = 4800
     lock = LockIn(48, 200.0 + np.arange(96).reshape(48, 2), FS, window, hop=BLOCK)
@@ -161,7 +164,8 @@ def main():
     compile_s["lockin_process"] = first_call(lambda: drive_lockin(*lock.args, x, est, 1))
     ns = best_time(lambda: drive_lockin(*lock.args, x, est, nb)) / (nb * BLOCK * 96) * 1e9
     np_ns = best_time(lambda: numpy_lockin(48, 2, window, nb_np), 3) / (nb_np * BLOCK * 96) * 1e9
-    rows.append(dict(kernel="lockin_process", case=f"48 ch x 2 freq, W={window}", unit="ns/slot-sample", ns=ns, numpy_ns=np_ns, speedup=np_ns / ns))
+    rows.append(dict(kernel="lockin_process", case=f"48 ch x 2 freq, W={window}", unit="ns/slot-sample",
+                     ns=ns, numpy_ns=np_ns, speedup=np_ns / ns))
 
     steady48 = rows[0]["ns"]
     result = dict(

@@ -38,7 +38,6 @@ sys.path.insert(0, str(ROOT / "tests"))
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-
 from hil_jack import JACKD, EmulatorProcess, JackServer, XrunCounter, xrun_causes  # noqa: E402
 
 SCENE = "line-bimorph-5"
@@ -203,9 +202,9 @@ def callback_costs(block, n_calls=20000):
     import sounddevice as sd
 
     from rtctl import scene as scenes
+    from rtctl.engine.rig import build
     from rtctl.io import _audio_kernels as K
     from rtctl.io.audio import AudioBackend, channel_map
-    from rtctl.engine.rig import build
 
     sc = scenes.load(SCENE, [f"timing.block={block}"])
     out = {}
@@ -226,7 +225,7 @@ def callback_costs(block, n_calls=20000):
             user = sd._ffi.cast("void *", int(be._cfunc_keep[0].ctypes.data))
             out["cfunc_note"] = be.stats()["cfunc_note"]
         else:
-            def wrapper(iptr, optr, frames, t, status, _):  # what sounddevice does per callback
+            def wrapper(iptr, optr, frames, t, status, _, m=m, n=n, be=be):  # what sounddevice does per callback
                 idata = sd._array(sd._buffer(iptr, frames, m, 4), m, "float32")
                 odata = sd._array(sd._buffer(optr, frames, n, 4), n, "float32")
                 return sd._wrap_callback(be._callback, idata, odata, frames, t, status)
@@ -274,7 +273,7 @@ def busy_engine(srv, block, seconds, busy):
         n = int(seconds * FS / block)
         busy_s = busy * block / FS
 
-        def on_block(k, slot):
+        def on_block(k, slot, busy_s=busy_s, n=n, rig=rig):
             t = time.perf_counter()
             while time.perf_counter() - t < busy_s:  # pure Python: holds the GIL
                 pass

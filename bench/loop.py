@@ -1,12 +1,13 @@
 """Real-time factor of the whole block step: synthesis + simulated plant + limiter.
 
 With the self-sensing observer off and on (``control.observe``: lock-in of drive and segment
-currents, observer matrices, tip waveform), for 1, 16, 48 and 128 bimorph channels (the demo scene's beam: 4 modes, 3-branch finger,
-amplifier, 2-segment current sense; one tone per channel) at blocks of 16, 32, 64 and 256 samples
-at 48 kHz, times ``Rig.advance`` (read, ``@njit`` step, write: everything the loop does per block
-except the trace) and, in the same process, a plain numpy implementation of the same step
-(``np.cos`` synthesis, ``np.clip`` and a per-sample slew loop, the same discrete plant as a dense
-matmul per sample, numpy noise and quantization).
+currents, observer matrices, tip waveform) and in closed loop (``control.mode = "closed"``: an
+observer per channel and the amplitude controller), for 1, 16, 48 and 128 bimorph channels (the demo
+scene's beam: 4 modes, 3-branch finger, amplifier, 2-segment current sense; one tone per channel)
+at blocks of 16, 32, 64 and 256 samples at 48 kHz, times ``Rig.advance`` (read, ``@njit`` step,
+write: everything the loop does per block except the trace) and, in the same process, a plain
+numpy implementation of the same step (``np.cos`` synthesis, ``np.clip`` and a per-sample slew
+loop, the same discrete plant as a dense matmul per sample, numpy noise and quantization).
 
 Compile time is measured apart, in child processes with an empty and then a warm numba cache
 (``NUMBA_CACHE_DIR``), so it shows both the cold cost and what caching saves across runs.
@@ -33,7 +34,7 @@ CHANNELS = (1, 16, 48, 128)
 BLOCKS = (16, 32, 64, 256)
 
 
-def scene_for(n_channels: int, block: int, observe: bool = False):
+def scene_for(n_channels: int, block: int, observe: bool = False, closed: bool = False):
     from rtctl import scene
 
     rng = np.random.default_rng(n_channels)
@@ -44,6 +45,7 @@ def scene_for(n_channels: int, block: int, observe: bool = False):
     return scene.load("line-bimorph-5", [
         f"actuator.lateral.grid=[{rows}, {n_channels // rows}]", f"timing.block={block}", f"stimulus.tones=[{tones}]",
         "timing.duration=3600", f"control.observe={'true' if observe else 'false'}",
+        f"control.mode={'closed' if closed else 'open'}",
     ])
 
 
@@ -122,9 +124,10 @@ def time_numpy(rig, seconds: float) -> float:
 
 def compile_times() -> dict:
     """Build the 48-channel rig in fresh processes: empty numba cache, then the warm one."""
-    code = ("import time; t = time.perf_counter(); import sys; sys.path.insert(0, %r); "
+    here = os.path.dirname(os.path.abspath(__file__))
+    code = (f"import time; t = time.perf_counter(); import sys; sys.path.insert(0, {here!r}); "
             "from loop import scene_for; from rtctl.engine.rig import build; build(scene_for(48, 32)); "
-            "print(time.perf_counter() - t)") % os.path.dirname(os.path.abspath(__file__))
+            "print(time.perf_counter() - t)")
     out = {}
     with tempfile.TemporaryDirectory() as d:
         env = dict(os.environ, NUMBA_CACHE_DIR=d)
@@ -147,30 +150,36 @@ def main(argv=None) -> int:
     for c, b in configs:
         rig = build(scene_for(c, b))
         obs_rig = build(scene_for(c, b, observe=True))
-        # interleaved, so both see the same machine load; mean RTF, worst p99
-        pairs = [(time_rig(rig, a.seconds / 2), time_rig(obs_rig, a.seconds / 2)) for _ in range(2)]
-        rtf, o_rtf = (float(np.mean([p[i][0] for p in pairs])) for i in (0, 1))
-        p99, o_p99 = (max(p[i][1] for p in pairs) for i in (0, 1))
+        cl_rig = build(scene_for(c, b, closed=True))  # observer per channel + controller
+        for r in (rig, obs_rig, cl_rig):
+            r.apply_schedule(0)  # every tone (every controller) on from the first block
+        # interleaved, so all see the same machine load; mean RTF, worst p99
+        trips = [tuple(time_rig(r, a.seconds / 3) for r in (rig, obs_rig, cl_rig)) for _ in range(2)]
+        rtf, o_rtf, c_rtf = (float(np.mean([p[i][0] for p in trips])) for i in (0, 1, 2))
+        p99, o_p99, c_p99 = (max(p[i][1] for p in trips) for i in (0, 1, 2))
         np_rtf = time_numpy(rig, min(a.seconds, 0.3))
         results.append({"channels": c, "block": b, "realtime_factor": rtf, "block_time_us_p99": p99,
                         "observer_realtime_factor": o_rtf, "observer_block_time_us_p99": o_p99,
+                        "closed_loop_realtime_factor": c_rtf, "closed_loop_block_time_us_p99": c_p99,
                         "block_period_us": 1e6 * b / FS, "numpy_realtime_factor": np_rtf,
                         "speedup_vs_numpy": rtf / np_rtf})
         if not a.json:
-            print(f"  {c:4d} ch  block {b:4d}: x{rtf:7.1f}, observer on x{o_rtf:7.1f} (numpy x{np_rtf:6.2f})",
-                  file=sys.stderr)
+            print(f"  {c:4d} ch  block {b:4d}: x{rtf:7.1f}, observer on x{o_rtf:7.1f}, closed loop x{c_rtf:7.1f} "
+                  f"(numpy x{np_rtf:6.2f})", file=sys.stderr)
     report = {"fs": FS, "results": results, **compile_times(),
               "states_per_channel": build(scene_for(1, 32)).device.groups[0][0].n_states}
     print(json.dumps(report, indent=1))
     if not a.json:
         print()
         print(f"{'channels':>8} {'block':>6} {'RTF':>8} {'p99 us':>8} {'observer on':>12} {'p99 us':>8} "
-              f"{'period us':>10} {'numpy RTF':>10} {'speed-up':>9}")
+              f"{'closed loop':>12} {'p99 us':>8} {'period us':>10} {'numpy RTF':>10} {'speed-up':>9}")
         for r in results:
             print(f"{r['channels']:8d} {r['block']:6d} {r['realtime_factor']:8.1f} {r['block_time_us_p99']:8.1f} "
                   f"{r['observer_realtime_factor']:12.1f} {r['observer_block_time_us_p99']:8.1f} "
+                  f"{r['closed_loop_realtime_factor']:12.1f} {r['closed_loop_block_time_us_p99']:8.1f} "
                   f"{r['block_period_us']:10.1f} {r['numpy_realtime_factor']:10.2f} {r['speedup_vs_numpy']:9.1f}")
-        print(f"compile (empty cache) {report['compile_s']:.1f} s; build with warm cache {report['cached_build_s']:.2f} s")
+        print(f"compile (empty cache) {report['compile_s']:.1f} s; "
+              f"build with warm cache {report['cached_build_s']:.2f} s")
     return 0
 
 

@@ -18,8 +18,19 @@ import numpy as np
 import scipy.signal
 from numba import njit
 
-from rtctl.plant import (BUILTIN, Amplifier, BeamSpec, BimorphPlant, CurrentSense, Layer,
-                         MaxwellLoad, SimGroup, TRUTH_NAMES, build_fe, sim_group_process)
+from rtctl.plant import (
+    BUILTIN,
+    TRUTH_NAMES,
+    Amplifier,
+    BeamSpec,
+    BimorphPlant,
+    CurrentSense,
+    Layer,
+    MaxwellLoad,
+    SimGroup,
+    build_fe,
+    sim_group_process,
+)
 
 FS, BLOCK = 48000.0, 32
 

@@ -1,7 +1,7 @@
 """Serial pin-controller link through a real pty and the device emulator: frames per second
 acknowledged, round trip per frame, resends under injected faults, time to notice a kill -9.
 
-Each case starts `python -m rtctl.io.emulate_serial SCENE [faults]`, opens the backend as a run
+Each case starts `python -m rtctl.emulate.serial SCENE [faults]`, opens the backend as a run
 would (HELLO included) and calls ``read(); write()``:
 
 - ``saturated``: back to back, a pin command changing on every call: the link's ceiling (one
@@ -46,7 +46,7 @@ BLOCK_S = 32 / 48000.0
 
 
 def start_emulator(name, *args):
-    p = subprocess.Popen([sys.executable, "-m", "rtctl.io.emulate_serial", name, *args],
+    p = subprocess.Popen([sys.executable, "-m", "rtctl.emulate.serial", name, *args],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     if not select.select([p.stdout], [], [], 120)[0]:
         p.kill()
@@ -204,7 +204,8 @@ def main(argv=None):
     for c in cases:
         print(f"{c['case']:<10} {c['display']:<8} {c['frames_per_s']:>9.0f} {c['rtt_median_ms']:>10.3f} "
               f"{c['rtt_p99_ms']:>10.3f} {c['resends']:>8} {c['timeouts']:>8} {c['nacks']:>6} "
-              f"{c['bad_frames']:>5} {str(c['device_lost']):>5} {c['call_us']['p50']:>7.1f}/{c['call_us']['p99']:<7.1f}")
+              f"{c['bad_frames']:>5} {str(c['device_lost']):>5} "
+              f"{c['call_us']['p50']:>7.1f}/{c['call_us']['p99']:<7.1f}")
     print(f"kill -9 -> DEVICE_LOST: {', '.join(f'{k:.2f}' for k in kills)} ms")
     print(f"16 Dot pins, command -> every ACKed state agrees: up median {sw['up']['median']:.2f} ms "
           f"(max {sw['up']['max']:.2f}), down median {sw['down']['median']:.2f} ms (max {sw['down']['max']:.2f})")

@@ -60,7 +60,7 @@ def kernel_exact(fn):
     return _cached(njit(nogil=True)(fn))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def package_stamp(root: Path = PACKAGE_DIR) -> bytes:
     """SHA-256 over every ``.py`` file of the package (path and content).
 
@@ -124,7 +124,7 @@ def _numba_version() -> str:
     return getattr(numba, "__version__", "?")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _stamped_cache_class():
     """Numba's function cache, its locators stamped with :func:`package_stamp`.
 

@@ -81,24 +81,30 @@ def _parser() -> argparse.ArgumentParser:
 
     scene_cmd("check", "validate a scene; list what it needs and what it leaves out", _check)
     scene_cmd("model", "actuator model facts: natural frequencies, static values, capacitance", _model)
+    c = scene_cmd("calibrate", "measure each bimorph group's segment currents with the finger lifted and fit "
+                  "the model's factors (use the file with control.calibration)", _calibrate)
+    c.add_argument("--out", metavar="FILE", help="calibration file to write (default out/SCENE_NAME/calibration.json)")
 
     # Tools living in their own subpackages parse their own options (``main(argv)``).
     _tool(sub, "selfsense", "transfer-matrix admittance plots and the observer accuracy sweep (SCENE ...)",
           "rtctl.selfsense.cli:main")
     _tool(sub, "render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main")
-    b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`",
+    b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`, "
+                       "`bench control`",
                        description="benchmarks (the loop's own speed: make bench)")
     bsub = b.add_subparsers(dest="bench", required=True)
     _tool(bsub, "numerics", "work-precision report and the stability cases", "rtctl.numerics.cli:main")
     _tool(bsub, "render", "HIA update and preprocessing times per rendering method", "rtctl.render.bench:main_bench")
+    _tool(bsub, "control", "closed-loop error and settle time against block size, with the real-time factor",
+          "rtctl.engine.bench_control:main")
     _name_choices(bsub)
     e = sub.add_parser("emulate", help="run a scene's simulated display as a device: `emulate audio SCENE` "
                        "(a JACK client) or `emulate serial SCENE` (a pin controller behind a pseudo-terminal)",
                        description="run a scene's simulated display as a device")
     esub = e.add_subparsers(dest="emulator", required=True)
-    _tool(esub, "audio", "the scene's simulated plant as a JACK client (SCENE ...)", "rtctl.io.emulate_audio:main")
+    _tool(esub, "audio", "the scene's simulated plant as a JACK client (SCENE ...)", "rtctl.emulate.audio:main")
     _tool(esub, "serial", "a Dot/SMA pin controller (firmware + plant) behind a pseudo-terminal (SCENE ...)",
-          "rtctl.io.emulate_serial:main")
+          "rtctl.emulate.serial:main")
     _name_choices(esub)
     d = sub.add_parser("devices", help="audio, serial and DAQ devices this machine has",
                        description="audio, serial and DAQ devices this machine has")
@@ -222,9 +228,47 @@ def _model(args) -> int:
     return 0
 
 
-def _run(args) -> int:
+def _calibrate(args) -> int:
+    from .engine.calibrate import calibrate, default_path, write
     from .engine.run import run
+
+    s = _load(args)
+    doc = calibrate(s, run, lambda text: print(f"rtctl: {text}", file=sys.stderr))
+    path = write(doc, args.out or default_path(s))
+    doc["file"] = str(path)
+    if args.json:
+        _print_json(doc)
+        return 0
+    ex = doc["excitation"]
+    for name, g in doc["groups"].items():
+        lines, use = g["lines_hz"], g["limits_used"]
+        print(f"{name}: {len(lines)} lines {lines[0]:g}-{lines[-1]:g} Hz at {g['volts_per_line']:.3g} V each on "
+              f"{g['channels']} channels, finger {ex['finger']}; peak <= {use['max_voltage']['used']:.3g} V of "
+              f"{use['max_voltage']['bound']:g} V, slew {100 * use['slew']['share']:.1f} %, current "
+              f"{100 * use['current']['share']:.1f} %, sensed {100 * use['sense']['share']:.1f} % of full scale: "
+              "the limiter did not act")
+    print(f"measurement: {ex['duration_s']:.2f} s of excitation (settle {ex['settle_s']:.2f} s, window "
+          f"{ex['window_s']:g} s), {ex['wall_s']:.1f} s wall; fit {doc['fit_s']:.1f} s")
+    head = (f"{'group':<12}{'E':>8}{'d31':>8}{'eps33T':>8}{'damping':>9}{'rho':>8}{'resid %':>9}{'cond':>7}"
+            f"{'uncert %':>10}")
+    print(head)
+    print("-" * len(head))
+    for name, g in doc["groups"].items():
+        f = g["factors"]
+        rho = f"{f['rho']:8.4f}" if "rho" in f else f"{'-':>8}"
+        how = (f"mass {g['anchor']['mass_kg'] * 1e6:.4g} mg within {100 * g['anchor']['mass_tolerance']:g} %"
+               if g["anchor"] else f"thickness and density within {100 * g['tolerance']:g} %")
+        print(f"{name:<12}{f['E']:8.4f}{f['d31']:8.4f}{f['eps33T']:8.4f}{f['damping']:9.3f}{rho}"
+              f"{g['residual_pct']:9.3f}{g['cond']:7.1f}{g['uncertainty_pct']:10.2f}  ({how})")
+    for w in doc["warnings"]:
+        print(f"rtctl: warning: {w}", file=sys.stderr)
+    print(f"written to {path}; use it with --set control.calibration={path}")
+    return 0
+
+
+def _run(args) -> int:
     from .engine.report import print_table
+    from .engine.run import run
 
     s = _load(args)
     out = args.out or os.path.join("out", s.scene.name)
@@ -234,6 +278,10 @@ def _run(args) -> int:
         _print_json(result.summary)
     else:
         print_table(result.summary)
+        cal = result.summary.get("calibration")
+        if cal:
+            scale = ", ".join(f"{g} within {u:.2g} %" for g, u in cal["uncertainty_pct"].items())
+            print(f"models calibrated by {cal['file']} (amplitude scale: {scale})")
         print(f"trace, summary.json{'' if args.no_plot else ' and plot.png'} in {out}")
     for msg in result.summary["faults"]:
         print(f"rtctl: fault: {msg}", file=sys.stderr)

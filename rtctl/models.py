@@ -3,14 +3,16 @@ rows a run senses. Built once per group and shared by everything that asks for t
 simulated device, the emulators, ``rtctl model``, ``rtctl selfsense``), so an observed bimorph
 group builds its beam once, and every reader derives a group's segment count from one place.
 
-Nothing here simulates: :mod:`rtctl.io.sim` wraps these models into simulated groups.
+Nothing here simulates: :mod:`rtctl.io.sim` wraps these models into simulated groups. A device
+that differs from its model is ``Models(scene, factors)``: relative factors on the scene's values
+(:data:`FACTORS`), which the caller chooses; nothing here decides who gets them.
 """
 
 from __future__ import annotations
 
 import math
 
-from .errors import SceneError
+from .errors import ModelError, SceneError
 
 #: Largest condition number of the in-loop observer's inversion: the two-segment designs of the
 #: bundled beams sit at 5-8; beyond 1e4 the current noise would dominate the estimate.
@@ -80,17 +82,44 @@ def finger_load(scene, group):
     return MaxwellLoad(f.mass, f.k0, tuple((b.k, b.tau) for b in f.branches))
 
 
+#: Relative factors :class:`Models` can apply on top of the scene's values, and what each scales.
+FACTORS = {
+    "thickness": "every layer thickness of every bimorph beam",
+    "E": "Young's modulus of every material a bimorph layer uses",
+    "d31": "d31 of every material a bimorph layer uses",
+    "eps33T": "relative permittivity of every material a bimorph layer uses",
+    "rho": "density of every material a bimorph layer uses",
+    "damping": "every bimorph beam's modal damping ratio",
+    "finger_k0": "the finger's static stiffness k0, on every group",
+    "finger_mass": "the finger's skin mass, on every group",
+    "finger_branches": "the stiffness k_i of every Maxwell branch of the finger, on every group",
+}
+
+
 class Models:
     """The models of one scene's actuator groups, each built on first use and kept.
 
     Parameters
     ----------
     scene : rtctl.scene.Scene
+    factors : dict, optional
+        Relative factors on the scene's values, keys of :data:`FACTORS` (missing keys: 1): the
+        models of a device that differs from the scene by them. Factors of exactly 1 change no
+        bit (``x * 1.0 == x``).
     """
 
-    def __init__(self, scene):
+    def __init__(self, scene, factors=None):
         self.scene = scene
+        self.factors = {k: float(v) for k, v in (factors or {}).items()}
+        unknown = sorted(set(self.factors) - set(FACTORS))
+        bad = [k for k, v in self.factors.items() if not (math.isfinite(v) and v > 0.0)]
+        if unknown or bad:
+            raise ModelError(f"Models factors: unknown {unknown} (allowed: {', '.join(FACTORS)}), "
+                             f"or not finite and > 0: {bad}")
         self._cache: dict = {}
+
+    def _factor(self, name: str) -> float:
+        return self.factors.get(name, 1.0)
 
     def _get(self, key, build):
         if key not in self._cache:
@@ -98,11 +127,30 @@ class Models:
         return self._cache[key]
 
     def materials(self) -> dict:
-        return self._get("materials", lambda: materials(self.scene))
+        def build():
+            from dataclasses import replace
+
+            f, mats = self._factor, materials(self.scene)
+            if not self.factors:  # the built-in objects themselves
+                return mats
+            return {name: replace(m, E=m.E * f("E"), d31=m.d31 * f("d31"), eps33T=m.eps33T * f("eps33T"),
+                                  rho=m.rho * f("rho"))
+                    for name, m in mats.items()}
+
+        return self._get("materials", build)
 
     def finger(self, group):
         """The finger on ``group``'s tips (:func:`finger_load`), or None without contact."""
-        return self._get(("finger", group.name), lambda: finger_load(self.scene, group))
+        def build():
+            from .plant.finger import MaxwellLoad
+
+            load, f = finger_load(self.scene, group), self._factor
+            if load is None:
+                return None
+            return MaxwellLoad(load.mass * f("finger_mass"), load.k0 * f("finger_k0"),
+                               tuple((k * f("finger_branches"), tau) for k, tau in load.branches))
+
+        return self._get(("finger", group.name), build)
 
     def beam(self, group):
         """The finite-element beam of a bimorph group (no finger). A ``support.type = "actuator"``
@@ -111,9 +159,10 @@ class Models:
         def build():
             from .plant.beam import BeamSpec, Layer, SupportSpec, build_beam
 
-            b, mats = group.beam, self.materials()
-            layers = tuple(Layer(mats[layer.material], layer.thickness) for layer in b.layers)
-            spec = BeamSpec(b.length, b.width, layers, b.connection, tuple(b.segments), b.damping, b.elements)
+            b, mats, f = group.beam, self.materials(), self._factor
+            layers = tuple(Layer(mats[layer.material], layer.thickness * f("thickness")) for layer in b.layers)
+            spec = BeamSpec(b.length, b.width, layers, b.connection, tuple(b.segments), b.damping * f("damping"),
+                            b.elements)
             sup = group.support
             if sup.type == "actuator":
                 return build_beam(spec, self.carrier(group).support_spec())
@@ -202,6 +251,24 @@ class Models:
                             t_ambient=group.limits.ambient, t_max=p.t_max, t_cut=p.t_cut)
 
         return self._get(("sma", group.name), build)
+
+    def ring_time(self, group) -> float:
+        """Time constant of the slowest decaying oscillation of a bimorph group under its finger
+        (the loaded modes' ``1 / sigma``), s: how long a switch-on transient rings."""
+        def build():
+            import numpy as np
+
+            from .plant.bimorph import BimorphPlant
+            from .plant.frontend import Amplifier, CurrentSense
+
+            plant = BimorphPlant(self.beam(group), Amplifier(group.amplifier.bandwidth),
+                                 CurrentSense(group.sense.shunt, group.sense.aa_cutoff), self.finger(group),
+                                 n_modes=group.beam.modes)
+            ev = np.linalg.eigvals(plant.sys.A)
+            osc = ev[(np.abs(ev.imag) > 1e-6 * np.abs(ev)) & (ev.real < 0)]
+            return float(np.max(-1.0 / osc.real)) if osc.size else 0.0
+
+        return self._get(("ring", group.name), build)
 
     def drive_load(self, group) -> tuple[float, float]:
         """``(capacitance F, resistance ohm)`` a channel of ``group`` drives (one of them is 0): what

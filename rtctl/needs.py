@@ -35,9 +35,9 @@ COMPONENTS: dict[str, tuple[str, tuple[str, ...]]] = {
 #: components that exist in this version of rtctl; the others are refused with a clear message.
 AVAILABLE = frozenset({
     "safety.limiter", "dsp.oscillator", "dsp.pulse", "dsp.lockin",
-    "plant.bimorph", "plant.finger", "io.sim", "render", "render.braille", "dsp.lockin",
-    "plant.sma", "plant.pvdf", "plant.em", "plant.dot", "plant.solenoid",
-    "selfsense", "io.audio", "io.serial", "io.daq",
+    "plant.bimorph", "plant.finger", "io.sim", "render", "render.braille", "plant.sma", "plant.pvdf", "plant.em",
+    "plant.dot", "plant.solenoid",
+    "selfsense", "io.audio", "io.serial", "io.daq", "control",
 })
 
 
@@ -91,6 +91,8 @@ def needs(scene) -> Needs:
     elif scene.control.observe:
         need["selfsense"] = "control.observe = true"
         need["dsp.lockin"] = "control.observe = true (lock-in of drive and segment currents)"
+    if scene.control.calibrate == "auto":
+        need.setdefault("selfsense", "control.calibrate = 'auto' (the model fitted to the measured currents)")
     backend = scene.io.backend
     need[f"io.{backend}"] = f"io.backend = {backend!r}"
     if backend == "sim":
@@ -107,9 +109,9 @@ def unavailable_message(component: str, why: str) -> str:
     fixes = {
         "selfsense": "use control.mode = 'open' for now",
         "dsp.lockin": "use control.mode = 'open' for now",
-        "control": "use control.mode = 'open' for now",
         "render": "use stimulus.kind = 'tones' for now",
     }
     fix = fixes.get(component, "use io.backend = 'sim' with a bimorph actuator for now"
                     if component.startswith(("io.", "plant.")) else "")
-    return f"{why} needs the {COMPONENTS[component][0]} ({component}), which this version of rtctl does not have yet; {fix}"
+    return (f"{why} needs the {COMPONENTS[component][0]} ({component}), "
+            f"which this version of rtctl does not have yet; {fix}")

@@ -49,6 +49,8 @@ ESTIMATE_NONFINITE = 512
 LIMIT_DC = 1024
 LIMIT_DUTY = 2048
 XRUN_BURST = 4096
+CONTROL_SATURATED = 8192
+CONTROL_FROZEN = 16384
 
 #: Status bits that end a run (outputs fade to zero first).
 FAULTS = NONFINITE | OVERTEMP | PLANT_NONFINITE | DEVICE_LOST | XRUN_BURST
@@ -67,6 +69,8 @@ STATUS_NAMES = {
     LIMIT_DC: "DC offset limited (a piezo's running mean voltage held at limits.dc_offset)",
     LIMIT_DUTY: "duty limited (an SMA spring's running heating duty held at limits.duty)",
     XRUN_BURST: "audio xrun burst (more than io.xrun_limit under/overflows within io.xrun_window)",
+    CONTROL_SATURATED: "amplitude control saturated (a target needs more than the channel's max_voltage)",
+    CONTROL_FROZEN: "amplitude control frozen (no usable estimate: drive held, never raised)",
 }
 
 # limiter state rows: last output V, temperature, fade start V, running means (see below)

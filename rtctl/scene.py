@@ -13,8 +13,10 @@ key, the offending value and what is allowed.
 
 from __future__ import annotations
 
+import copy
 import difflib
 import math
+import re
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -319,6 +321,10 @@ def _value(spec: Key, v: Any, path: str, origin: str) -> Any:
 
 def _scalar(spec: Key, v: Any, path: str, origin: str) -> Any:
     kind = spec.kind
+    if kind == "table":
+        if not isinstance(v, Mapping):
+            raise _fail(origin, path, v, "must be a table")
+        return copy.deepcopy(dict(v))
     if kind == "bool":
         if not isinstance(v, bool):
             raise _fail(origin, path, v, "must be true or false")
@@ -351,7 +357,8 @@ def _scalar(spec: Key, v: Any, path: str, origin: str) -> Any:
 def _cross_checks(s: dict, origin: str) -> None:
     t = s["timing"]
     if t["duration"] * t["fs"] < t["block"]:
-        raise _fail(origin, "timing.duration", t["duration"], f"shorter than one block ({t['block']} samples at {t['fs']:g} Hz)")
+        raise _fail(origin, "timing.duration", t["duration"],
+                    f"shorter than one block ({t['block']} samples at {t['fs']:g} Hz)")
     names = [a["name"] for a in s["actuator"]]
     for i, a in enumerate(s["actuator"]):
         p = f"actuator.{a['name']}"
@@ -368,7 +375,8 @@ def _cross_checks(s: dict, origin: str) -> None:
             m = layer["material"]
             if m not in BUILTIN_MATERIALS and m not in s["materials"]:
                 known = ", ".join(BUILTIN_MATERIALS + tuple(s["materials"]))
-                raise _fail(origin, f"{p}.beam.layers.{j}.material", m, f"unknown material (known: {known}; add a [materials.{m}] table)")
+                raise _fail(origin, f"{p}.beam.layers.{j}.material", m,
+                            f"unknown material (known: {known}; add a [materials.{m}] table)")
         if a["support"]["type"] == "elastic" and math.isinf(a["support"]["k"]) and math.isinf(a["support"]["k_rot"]):
             raise _fail(origin, f"{p}.support.k", a["support"]["k"], "an elastic support needs a finite k or k_rot")
     nyq = t["fs"] / 2
@@ -380,7 +388,8 @@ def _cross_checks(s: dict, origin: str) -> None:
         tone["actuator"] = group
         grid = s["actuator"][names.index(group)]["grid"]
         if tone["channel"] >= grid[0] * grid[1]:
-            raise _fail(origin, f"{p}.channel", tone["channel"], f"group {group!r} has channels 0..{grid[0] * grid[1] - 1}")
+            raise _fail(origin, f"{p}.channel", tone["channel"],
+                        f"group {group!r} has channels 0..{grid[0] * grid[1] - 1}")
         top = tone["freq"] + tone["beat"] / 2
         if top >= nyq:
             raise _fail(origin, f"{p}.freq", tone["freq"], f"tone reaches {top:g} Hz, above Nyquist ({nyq:g} Hz)")
@@ -388,3 +397,104 @@ def _cross_checks(s: dict, origin: str) -> None:
             raise _fail(origin, f"{p}.beat", tone["beat"], f"must be below 2 * freq ({2 * tone['freq']:g} Hz)")
         if tone["start"] >= t["duration"]:
             raise _fail(origin, f"{p}.start", tone["start"], f"after the end of the run ({t['duration']:g} s)")
+    if s["events"]:
+        event_states(s, origin)
+
+
+# ----------------------------------------------------------------------------- events
+
+#: Scene keys an event may set during a run: ``N`` is an index into ``stimulus.tones``, ``NAME``
+#: an actuator group (by name or index). Everything else is built once, before the first block.
+EVENT_KEYS = ("finger.preload", "finger.contact", "finger.subject", "stimulus.tones.N.target_um",
+              "actuator.NAME.em.preload", "actuator.NAME.dot.preload", "actuator.NAME.solenoid.preload")
+_EVENT_KEY = re.compile(r"finger\.(preload|contact|subject)|stimulus\.tones\.\d+\.target_um"
+                        r"|actuator\.[^.]+\.(em|dot|solenoid)\.preload")
+
+
+def event_keys(table: Mapping, prefix: str = "") -> dict[str, Any]:
+    """An event's ``set`` table as ``dotted.key -> value``: quoted keys (``"finger.preload" = 1``)
+    and nested tables (``finger.preload = 1``, ``finger = {preload = 1}``) read the same."""
+    out: dict[str, Any] = {}
+    for k, v in table.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        if isinstance(v, Mapping):
+            out.update(event_keys(v, key))
+        else:
+            out[key] = v
+    return out
+
+
+def event_states(data: Mapping[str, Any], origin: str) -> list[dict[str, Any]]:
+    """The validated scene after each of ``data["events"]``, in order (without events).
+
+    Each event's keys are applied on top of the scene as the previous event left it, then the
+    whole scene is validated as ``--set`` values are: a bad value stops with the same one-line
+    message, prefixed with ``events.I``. A key outside :data:`EVENT_KEYS`, events out of time
+    order, one at or after the end of the run, or an empty ``set`` are refused in one line.
+
+    Parameters
+    ----------
+    data : mapping
+        A validated scene (:func:`validate`'s result, or ``Scene.to_dict()``).
+    origin : str
+        Where the scene came from, for messages.
+    """
+    base = _plain(data)
+    events = base.pop("events", None) or []
+    base["events"] = []
+    duration = base["timing"]["duration"]
+    states, prev = [], None
+    for i, ev in enumerate(events):
+        where = f"events.{i}"
+        at = ev["at"]
+        if prev is not None and at < prev:
+            raise _fail(origin, f"{where}.at", at, f"events must be in time order (events.{i - 1} is at {prev:g} s)")
+        if at >= duration:
+            raise _fail(origin, f"{where}.at", at, f"after the end of the run ({duration:g} s)")
+        prev = at
+        sets = event_keys(ev["set"])
+        if not sets:
+            raise _fail(origin, f"{where}.set", ev["set"], "an event sets at least one key")
+        for key, value in sets.items():
+            if not _EVENT_KEY.fullmatch(key):
+                concrete = [k.replace("N", "0").replace("NAME", a["name"]) for k in EVENT_KEYS
+                            for a in (base["actuator"] if "NAME" in k else base["actuator"][:1])]
+                hint = difflib.get_close_matches(key, concrete, n=1, cutoff=0.8)
+                more = f"; did you mean {hint[0]!r}?" if hint else ""
+                raise SceneError(f"{origin}: {where}.set: {key!r} cannot change during a run (allowed: "
+                                 f"{', '.join(EVENT_KEYS)}){more}")
+            _event_set(base, key, value, f"{origin}: {where}.set")
+        base = _plain(validate(base, f"{origin}: {where}"))
+        states.append(_plain(base))
+    return states
+
+
+def _plain(v: Any) -> Any:
+    """A deep copy as TOML would load it (tables dicts, arrays lists: defaults are tuples), so
+    that a validated scene validates again unchanged."""
+    if isinstance(v, Mapping):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+def _event_set(data: dict, key: str, value: Any, where: str) -> None:
+    """``data[key] = value`` along the dotted path (arrays of tables by name or index)."""
+    parts = key.split(".")
+    node: Any = data
+    for i, part in enumerate(parts[:-1]):
+        here = ".".join(parts[: i + 1])
+        if isinstance(node, list):
+            names = [x.get("name") for x in node if isinstance(x, dict)]
+            if part in names:
+                node = node[names.index(part)]
+            elif part.isdigit() and int(part) < len(node):
+                node = node[int(part)]
+            elif part.isdigit():
+                raise SceneError(f"{where}: {key!r}: {here}: index {int(part)} out of range (have {len(node)} items)")
+            else:
+                raise SceneError(f"{where}: {key!r}: no item named {part!r} at {here} (have {names})")
+        else:
+            node = node.setdefault(part, {})
+    node[parts[-1]] = value

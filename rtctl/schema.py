@@ -20,7 +20,8 @@ class Key:
     """One scalar or list key.
 
     ``kind`` is one of ``float``, ``int``, ``str``, ``bool``, ``floats`` (list of numbers),
-    ``ints`` (list of integers). ``lo``/``hi`` bound numbers (and every list element);
+    ``ints`` (list of integers), ``table`` (free keys; checked by the code that reads it).
+    ``lo``/``hi`` bound numbers (and every list element);
     ``open_lo`` excludes ``lo``. ``choices`` restricts strings. ``length`` fixes a list length.
     """
 
@@ -95,6 +96,25 @@ def _subjects() -> Table:
                  "whose preload is nearest `finger.preload`", many=True)
 
 
+def _mismatch() -> Table:
+    # one factor per value the simulated hardware has and its model does not know
+    secret = "the simulated device's secret: only the sim backend and the audio emulator read it"
+    what = {
+        "thickness": "every layer thickness of every bimorph beam",
+        "E": "Young's modulus of every material the bimorph layers use",
+        "d31": "d31 of every material the bimorph layers use",
+        "eps33T": "relative permittivity eps33T of every material the bimorph layers use",
+        "rho": "density of every material the bimorph layers use",
+        "damping": "modal damping ratio of every bimorph beam",
+        "finger_k0": "the finger's static stiffness k0 (every group)",
+        "finger_mass": "the finger's skin mass (every group)",
+        "finger_branches": "the stiffness k_i of every Maxwell branch of the finger (every group)",
+    }
+    return Table({k: Key("float", 1.0, "", f"factor on {v}; {secret}", 0.1, 10.0) for k, v in what.items()},
+                 "relative factors the simulated hardware has and the rig's models do not know (1: none); "
+                 "the limiter, observer and controller keep the scene's values")
+
+
 PIEZO_TYPES = ("bimorph", "pvdf")
 
 LIMITS = Table(
@@ -140,6 +160,9 @@ ACTUATOR = Table(
                 "damping": Key("float", 0.01, "", "modal damping ratio", 0.0, 0.5),
                 "elements": Key("int", 24, "", "finite elements along the beam", 2, 400),
                 "modes": Key("int", 4, "", "modes kept in the simulated plant (plus a static correction)", 1, 20),
+                "mass": Key("float", 0.0, "kg", "measured mass of the free length (what the model's length covers), for `rtctl calibrate`: anchors the amplitude scale the segment currents cannot see; 0 = not measured", 0.0, 1.0),
+                "tolerance": Key("float", 0.02, "", "relative bound on the layer thicknesses and the density (how well they are known): the calibrated amplitude's uncertainty without `mass`", 0.0, 0.5),
+                "mass_tolerance": Key("float", 0.005, "", "relative bound on the `mass` reading: the calibrated amplitude's uncertainty with it", 0.0, 0.5, open_lo=True),
             },
             "bending beam of a bimorph",
             types=("bimorph",),
@@ -275,8 +298,9 @@ TONE = Table(
         "shape": Key("str", "sine", "", "waveform: sine (oscillator, ramped); square (+-voltage, 50 % duty); "
                      "pulse (0 / voltage at `duty`, for coil pins)", choices=("sine", "square", "pulse")),
         "duty": Key("float", 0.5, "", "fraction of each cycle at `voltage` (shape pulse)", 0.0, 1.0),
+        "target_um": Key("float", 0.0, "um", "closed loop: tip amplitude to hold (peak; a beat pair's envelope peak); 0 = the receptor's threshold raised by control.margin_db", 0.0, 1e5),
     },
-    "open-loop tones (stimulus.kind = \"tones\")",
+    "tones (stimulus.kind = \"tones\"): open loop at `voltage`; closed loop at their target, starting from the model's drive",
     many=True,
 )
 
@@ -317,6 +341,7 @@ SCENE = Table(
                 "timeout": Key("float", 0.02, "s", "serial acknowledgement timeout before a frame is resent", 0.001, 10.0),
                 "retries": Key("int", 3, "", "serial resends of one frame before the device counts as lost", 0, 100),
                 "keepalive": Key("float", 0.05, "s", "longest time between serial frames (the device's watchdog drops every pin after 4x this)", 0.001, 10.0),
+                "mismatch": _mismatch(),
             },
             "where blocks go",
         ),
@@ -372,11 +397,26 @@ SCENE = Table(
         ),
         "control": Table(
             {
-                "mode": Key("str", "open", "", "open: tones as given; closed: amplitude control from self-sensing", choices=("open", "closed")),
+                "mode": Key("str", "open", "", "open: tones at their voltage; closed: each sine tone's tip amplitude held at its target by amplitude control from self-sensing (bimorph groups)", choices=("open", "closed")),
                 "margin_db": Key("float", 6.0, "dB", "target = threshold * 10^(margin_db/20)", -40.0, 60.0),
                 "observe": Key("bool", False, "", "run the self-sensing observer in the block step and trace `estimated_um` (bimorph groups with segment currents; implied by mode = 'closed')"),
+                "calibration": Key("str", "", "", "calibration file written by `rtctl calibrate` (relative to the scene file, else to the working directory): the rig's models (limiter, observer, controller) take its fitted factors; \"\" = the scene's nominal values"),
+                "calibrate": Key("str", "off", "", "auto: measure and fit a calibration with the finger lifted before the run (written to the run's out directory as calibration.json) and use it", choices=("off", "auto")),
             },
             "amplitude targets and control",
+        ),
+        "events": Table(
+            {
+                "at": Key("float", REQUIRED, "s", "when: the event takes effect at the start of block "
+                          "floor(at fs / block), so up to one block late", 0.0, 86400.0),
+                "set": Key("table", REQUIRED, "", "scene keys and their new values, e.g. "
+                           "`{ \"finger.preload\" = 1.96 }`, checked as `--set` checks them; allowed: "
+                           "`finger.preload`, `finger.contact`, `finger.subject`, `stimulus.tones.N.target_um`, "
+                           "`actuator.NAME.em.preload`, `actuator.NAME.dot.preload`, `actuator.NAME.solenoid.preload`"),
+            },
+            "changes during a run (the finger presses harder, lifts off, comes back), in time order; "
+            "each event's keys stay set until a later event sets them again",
+            many=True,
         ),
     },
     "a scene",

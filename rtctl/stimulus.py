@@ -5,13 +5,15 @@ changes handed to the block function between blocks (:class:`Stimulus`).
 Rendered stimuli: images (along an HIA path), Braille text and shapes.
 
 The renderer (:mod:`rtctl.render`) produces per-pin parameters at the render rate; this stage maps
-them onto the synthesis the display needs, ramped or switched by the dsp kernels in the next block:
+them onto the synthesis the display needs, ramped or switched by the dsp kernels in the next block.
+The drive per pin, by render method:
 
-| method | drive per pin |
-|---|---|
-| ``beat`` (PVDF, piezo) | a sine at the pin's ``freq_hz`` (cell pairs at f_c -+ f_b/2), amplitude ``amplitude * voltage``, ramped over a block with phase continuity |
-| ``frequency`` (solenoid pins) | a pulse train at ``freq_hz`` between 0 and ``voltage`` (0 Hz: held at 0 V) |
-| ``roi``, ``canny``, Braille, shapes (binary pins) | a held level: ``voltage`` when up; when down ``-voltage`` for bipolar pins (Dot, SMA: the current direction commands down), else 0 V |
+* ``beat`` (PVDF, piezo): a sine at the pin's ``freq_hz`` (cell pairs at f_c -+ f_b/2), amplitude
+  ``amplitude * voltage``, ramped over a block with phase continuity;
+* ``frequency`` (solenoid pins): a pulse train at ``freq_hz`` between 0 and ``voltage`` (0 Hz:
+  held at 0 V);
+* ``roi``, ``canny``, Braille, shapes (binary pins): a held level, ``voltage`` when up; when down
+  ``-voltage`` for bipolar pins (Dot, SMA: the current direction commands down), else 0 V.
 
 Only :meth:`RenderStage.apply` runs between blocks; all image-wide work happens at build time.
 """
@@ -67,6 +69,8 @@ class Stimulus:
     def __init__(self, scene, offsets: dict, n_channels: int, fs: float, block: int):
         self.fs, self.block, self.n_channels = float(fs), int(block), int(n_channels)
         tones, chans, freqs = [], [], []
+        self.bank_index: list[tuple] = []  # per tone, its oscillators in the bank (none for pulses)
+        self.start_hook = None  # see apply()
         self._schedule: dict[int, list] = {}
         scene_tones = scene.stimulus.tones if scene.stimulus.kind == "tones" else ()
         if scene_tones:
@@ -77,7 +81,12 @@ class Stimulus:
             receptor = perception.auto_receptor(t.freq) if t.receptor == "auto" else t.receptor
             thr = perception.threshold_m(t.freq, receptor) if receptor else math.nan
             stops = scene.group(t.actuator).type in END_STOP_TYPES
-            tgt = perception.target_m(t.freq, receptor, scene.control.margin_db) if receptor and not stops else math.nan
+            if stops:
+                tgt = math.nan
+            elif t.target_um > 0:
+                tgt = t.target_um * 1e-6
+            else:
+                tgt = perception.target_m(t.freq, receptor, scene.control.margin_db) if receptor else math.nan
             kb = int(math.floor(t.start * self.fs / self.block))
             if t.shape != "sine":
                 if t.beat > 0:
@@ -89,12 +98,14 @@ class Stimulus:
                 high, low, duty = (t.voltage, -t.voltage, 0.5) if t.shape == "square" else (t.voltage, 0.0, t.duty)
                 pulses[ch] = (kb, t.freq, duty, high, low)
                 tones.append(Tone(ch, t.freq, 0.0, t.voltage, receptor, thr, tgt, t.start, (t.freq,), t.shape))
+                self.bank_index.append(())
                 continue
             if t.beat > 0:  # a pair of half amplitude each: the envelope peaks at the pair voltage
                 fr, am = (tuple(float(x) for x in a) for a in beat_tones(t.freq, t.beat, t.voltage))
             else:
                 fr, am = (t.freq,), (t.voltage,)
             tones.append(Tone(ch, t.freq, t.beat, t.voltage, receptor, thr, tgt, t.start, fr))
+            self.bank_index.append(tuple(range(len(freqs), len(freqs) + len(fr))))
             # Every tone switches on ramped over one block at the block holding its start time.
             self._schedule.setdefault(kb, []).extend(zip(range(len(freqs), len(freqs) + len(fr)), am))
             chans += [ch] * len(fr)
@@ -103,6 +114,7 @@ class Stimulus:
         self.targets_um = np.full(self.n_channels, np.nan)
         for tone in tones:
             self.targets_um[tone.channel] = tone.target_m * 1e6
+        self.targets_um0 = self.targets_um.copy()  # as the scene starts (events change targets_um)
         self.bank = None
         if freqs:
             self.bank = OscillatorBank(self.n_channels, np.array(chans), self.fs, np.array(freqs),
@@ -123,8 +135,11 @@ class Stimulus:
 
     def apply(self, k: int) -> None:
         """The parameter changes due at block ``k`` (ramped across that block), through the
-        banks' :meth:`route` when the engine set one."""
+        banks' :meth:`route` when the engine set one. A tone under amplitude control starts
+        through ``start_hook(bank tone index)`` instead (it returns True for such tones)."""
         for i, amp in self._schedule.get(k, ()):
+            if self.start_hook is not None and self.start_hook(i):
+                continue
             self.bank.set(i, amp=amp)
         for ch, f, duty, high, low in self._pulse_schedule.get(k, ()):
             self.pulses.set(ch, freq=f, duty=duty, high=high, low=low)

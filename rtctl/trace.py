@@ -51,7 +51,7 @@ class TraceWriter:
         fields = list(HEADER_FIELDS)
         per_block = []
         for name, spec in signals.items():
-            unit, rows = spec[0], spec[1]
+            rows = spec[1]
             if len(spec) > 2 and spec[2] == 0:
                 fields.append((name, "<f4", (rows,)))
                 per_block.append(name)

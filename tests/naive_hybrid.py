@@ -116,12 +116,12 @@ def reference(model, x0, params, drive, fs, rtol=1e-10, atol=None, method="Radau
         while True:
             A = model.M[mode]
 
-            def f(t, y, A=A):
+            def f(t, y, A=A, z_u=z_u):
                 return A[:, :n] @ y + A[:, n:] @ z_u
 
             evs = []
             for i in range(model.n_switches):
-                def ev(t, y, i=i):
+                def ev(t, y, i=i, z_u=z_u):
                     return model.S[i, :n] @ y + model.S[i, n:] @ z_u
                 ev.terminal = True
                 # Only a crossing *out of* the current side of switch i ends the stretch.

@@ -97,7 +97,7 @@ def naive_toy(fs, substeps, drive):
     for t, u in enumerate(drive):
         out[:, t] = outputs((x, v), u)
         for _ in range(substeps):
-            def trap(on):
+            def trap(on, x=x, v=v, u=u):
                 ks = KS if on else 0.0
                 A = np.array([[0.0, 1.0], [-(K + ks) / M, -C / M]])
                 b = np.array([0.0, (G * u + ks * GAP) / M])

@@ -76,7 +76,8 @@ def group_run(plant, fs, k, drive, f_ext, crossbar=False, rows=1, slot=1):
         v_applied = drive[:, t].copy()
         if crossbar:
             v_applied[np.arange(nc) // cols != active] = 0.0
-        v_applied[((v_applied > 0) & (temp[:, 0] >= plant.t_cut)) | ((v_applied < 0) & (temp[:, 1] >= plant.t_cut))] = 0.0
+        v_applied[((v_applied > 0) & (temp[:, 0] >= plant.t_cut))
+                  | ((v_applied < 0) & (temp[:, 1] >= plant.t_cut))] = 0.0
         p_up = np.where(v_applied > 0, v_applied**2, 0.0)
         p_low = np.where(v_applied < 0, v_applied**2, 0.0)
         temp[:, 0] = plant.t_ambient + gain * p_up + (temp[:, 0] - plant.t_ambient - gain * p_up) * a

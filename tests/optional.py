@@ -23,7 +23,7 @@ INSTALL = {
 }
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def import_error(module: str) -> str | None:
     """Why ``import module`` fails in a child process, or None when it works."""
     r = subprocess.run([sys.executable, "-c", f"import {module}"], capture_output=True, text=True,

@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import pytest
-
 from closed_forms import (
     CANTILEVER_ROOTS,
     CLAMPED_PINNED_ROOT,
@@ -21,6 +20,7 @@ from closed_forms import (
     laminate,
     loaded_root,
 )
+
 from rtctl.errors import ModelError
 from rtctl.plant.beam import BeamSpec, Layer, SupportSpec, build_beam
 from rtctl.plant.facts import model_facts

@@ -7,9 +7,21 @@ import pytest
 from numba import njit
 
 from rtctl.errors import ModelError
-from rtctl.plant import (BUILTIN, Amplifier, BeamSpec, BimorphPlant, CurrentSense, Layer,
-                         MaxwellLoad, SimGroup, TRUTH_NAMES, build_fe, c2d, sim_group_process,
-                         to_modal)
+from rtctl.plant import (
+    BUILTIN,
+    TRUTH_NAMES,
+    Amplifier,
+    BeamSpec,
+    BimorphPlant,
+    CurrentSense,
+    Layer,
+    MaxwellLoad,
+    SimGroup,
+    build_fe,
+    c2d,
+    sim_group_process,
+    to_modal,
+)
 
 FS = 48000.0
 FREQS = np.array([1.0, 20.0, 100.0, 250.0, 500.0, 800.0, 1000.0])

@@ -5,8 +5,8 @@ import math
 
 import numpy as np
 import pytest
-
 from closed_forms import CANTILEVER_ROOTS, loaded_root
+
 from rtctl.cli import main
 
 EPS0 = 8.8541878128e-12
@@ -24,7 +24,8 @@ def run_cli(capsys, *args):
         (["check", "line-bimorph-5", "--set", "timing.blok=64"], ["timing.blok", "timing.block"]),
         (["run", "line-bimorph-5", "--set", "actuator.lateral.max_voltage=-1"], ["max_voltage", "-1.0", "(0, 2000] V"]),
         (["model", "no-such-scene"], ["no-such-scene", "no such scene"]),
-        (["run", "line-bimorph-5", "--set", "control.mode=closed"], ["control.mode = 'closed'", "not have yet", "open"]),
+        (["run", "line-bimorph-5", "--set", "control.mode=closed", "--set", "stimulus.kind=shape"],
+         ["control.mode = closed", "stimulus.kind = 'tones'", "'shape'"]),
         (["run", "line-bimorph-5", "--set", "io.backend=replay"], ["io.backend = 'replay'", "not have yet"]),
         (["run", "dot-4x4", "--set", "io.backend=serial"], ["io.port", "rtctl emulate serial"]),
         (["run", "line-bimorph-5", "--set", "stimulus.kind=image", "--set", "stimulus.method=roi",
@@ -67,7 +68,8 @@ def test_run_json_summary_trace_and_plot(capsys, tmp_path):
     assert code == 0, err
     s = json.loads(out)
     assert s == json.loads((tmp_path / "summary.json").read_text())
-    for key in ("fs", "block", "duration_s", "realtime_factor", "block_time_us", "deadline_misses", "faults", "channels"):
+    for key in ("fs", "block", "duration_s", "realtime_factor", "block_time_us", "deadline_misses", "faults",
+                "channels"):
         assert key in s
     assert set(s["block_time_us"]) == {"p50", "p99", "p999", "max"}
     assert s["faults"] == [] and len(s["channels"]) == 5
@@ -85,16 +87,17 @@ def test_run_json_summary_trace_and_plot(capsys, tmp_path):
     assert r.n_blocks == math.ceil(0.5 * 48000 / 32) + 1  # run blocks + the closing fade block
     assert np.all(r.signal("drive")[:, -1] == 0.0)  # the run ends at 0 V
     rows = r.layout["meta"]["sensed_rows"]
-    assert len(rows) == r.signal("sensed").shape[0] and rows[:3] == ["lateral.0.seg0", "lateral.0.seg1", "lateral.1.seg0"]
+    assert len(rows) == r.signal("sensed").shape[0]
+    assert rows[:3] == ["lateral.0.seg0", "lateral.0.seg1", "lateral.1.seg0"]
 
 
 def test_run_amplitude_matches_the_continuous_model(capsys, tmp_path):
     """The whole pipeline (scene -> rig -> loop -> trace -> report) against the plant's own
     continuous frequency response, evaluated independently of the kernels."""
     from rtctl import scene
+    from rtctl.models import Models
     from rtctl.plant.bimorph import BimorphPlant
     from rtctl.plant.frontend import Amplifier, CurrentSense
-    from rtctl.models import Models
 
     code, out, _ = run_cli(capsys, "run", "line-bimorph-5", "--duration", "1.0", "--out", str(tmp_path),
                            "--json", "--no-plot")
@@ -118,12 +121,14 @@ def test_model_agrees_with_closed_forms_on_unseen_beams(capsys, seed, connection
     frequencies within 0.5 %, Smits-Choi statics within 1 % (docs/references.md)."""
     rng = np.random.default_rng(100 + seed)
     L, w, t = rng.uniform(5e-3, 40e-3), rng.uniform(0.5e-3, 8e-3), rng.uniform(0.05e-3, 0.6e-3)
-    E, d31, eps, rho = rng.uniform(5e9, 120e9), rng.uniform(-400e-12, 400e-12), rng.uniform(200, 4000), rng.uniform(1500, 9000)
+    E, d31, eps, rho = (rng.uniform(5e9, 120e9), rng.uniform(-400e-12, 400e-12), rng.uniform(200, 4000),
+                        rng.uniform(1500, 9000))
     eps = max(eps, 3 * d31**2 * E / EPS0)  # a physical material: k31^2 <= 1/3
     sets = [f"materials.X.E={E!r}", f"materials.X.d31={d31!r}", f"materials.X.eps33T={eps!r}",
             f"materials.X.rho={rho!r}", f"actuator.lateral.beam.length={L!r}", f"actuator.lateral.beam.width={w!r}",
             f"actuator.lateral.beam.connection={connection}", "actuator.lateral.beam.segments=[1.0]",
-            f'actuator.lateral.beam.layers=[{{material = "X", thickness = {t!r}}}, {{material = "X", thickness = {t!r}}}]']
+            f'actuator.lateral.beam.layers=[{{material = "X", thickness = {t!r}}}, '
+            f'{{material = "X", thickness = {t!r}}}]']
     args = ["model", "line-bimorph-5", "--json"] + [a for s in sets for a in ("--set", s)]
     code, out, err = run_cli(capsys, *args)
     assert code == 0, err

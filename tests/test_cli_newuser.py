@@ -215,7 +215,8 @@ def test_ctrl_c_says_how_long_the_run_went_and_where_its_trace_is(tmp_path):
             p.kill()
             p.communicate()
     assert p.returncode == 130, err
-    m = re.search(r"^rtctl: interrupted after ([0-9.]+) s \((\d+) blocks\); trace and summary in (.+)$", err, re.MULTILINE)
+    m = re.search(r"^rtctl: interrupted after ([0-9.]+) s \((\d+) blocks\); trace and summary in (.+)$", err,
+                  re.MULTILINE)
     assert m, err
     assert "Traceback" not in err
     s = json.loads((out_dir / "summary.json").read_text())

@@ -1,11 +1,11 @@
 """Ramp and Fade: twins, chunk invariance, exact end values, silence."""
 
+import naive_dsp
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import naive_dsp
 from rtctl.dsp import Fade, Ramp, fade_process, ramp_process
 
 TINY_NORMAL = np.finfo(np.float64).tiny
@@ -113,7 +113,8 @@ def test_no_subnormals_after_ramp_to_silence():
 
 @pytest.mark.parametrize(
     "make, match",
-    [(lambda: Ramp(0), "n_params = 0"), (lambda: Ramp(1, ramp=0), "ramp = 0"), (lambda: Fade(0), "length = 0"), (lambda: Fade(8, gain=-1.0), "gain = -1.0")],
+    [(lambda: Ramp(0), "n_params = 0"), (lambda: Ramp(1, ramp=0), "ramp = 0"), (lambda: Fade(0), "length = 0"),
+     (lambda: Fade(8, gain=-1.0), "gain = -1.0")],
     ids=["no-params", "zero-ramp", "zero-fade", "negative-gain"],
 )
 def test_validation(make, match):

@@ -1,11 +1,11 @@
 """LockIn: known tones, beat pairs, least-squares reference, twin, long-run stability."""
 
+import naive_dsp
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import naive_dsp
 from rtctl.dsp import LockIn, OscillatorBank, beat_window, lockin_process, window_leakage
 from rtctl.dsp import _kernels as K
 
@@ -40,7 +40,8 @@ def lstsq_fit(xw, freq, n_end):
     return c + 1j * s
 
 
-@pytest.mark.parametrize("freq, amp, phase", [(250.0, 1.0, 0.0), (1000.0, 0.3, 2.0), (30.0, 5.0, -2.5)], ids=["250Hz", "1kHz", "30Hz"])
+@pytest.mark.parametrize("freq, amp, phase", [(250.0, 1.0, 0.0), (1000.0, 0.3, 2.0), (30.0, 5.0, -2.5)],
+                         ids=["250Hz", "1kHz", "30Hz"])
 def test_known_tone(freq, amp, phase):
     window = 4800  # whole periods of each frequency: no self-leakage from the mirror image
     lock = LockIn(1, [[freq]], FS, window)

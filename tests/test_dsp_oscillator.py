@@ -2,6 +2,7 @@
 
 from fractions import Fraction
 
+import naive_dsp
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -9,7 +10,6 @@ from hypothesis import strategies as st
 from numba import njit
 from scipy.signal import hilbert
 
-import naive_dsp
 from rtctl.dsp import OscillatorBank, beat_tones, osc_bank_process
 from rtctl.dsp import _kernels as K
 
@@ -38,7 +38,8 @@ def subnormals(*arrays):
 # ---- against the naive twin ------------------------------------------------------------------
 CASES = {
     "one-tone-steady": dict(chan=[0], freq=[1234.5], amp=[0.7], phase=[0.3], sched={}),
-    "shared-rows": dict(chan=[0, 0, 1, 2], freq=[100.0, 3000.0, 23999.0, 0.0], amp=[1.0, 0.25, 0.5, 0.1], phase=[0, 1, 2, 3], sched={}),
+    "shared-rows": dict(chan=[0, 0, 1, 2], freq=[100.0, 3000.0, 23999.0, 0.0], amp=[1.0, 0.25, 0.5, 0.1],
+                        phase=[0, 1, 2, 3], sched={}),
     "ramps-across-calls": dict(
         chan=[0, 1, 1],
         freq=[250.0, 40.0, 1000.0],
@@ -59,7 +60,8 @@ def test_matches_naive_twin(case):
     n = 3000
     bank = OscillatorBank(3, case["chan"], FS, case["freq"], case["amp"], case["phase"], ramp=64)
     got = run(bank, n, splits=range(0, n, 97), schedule=case["sched"])
-    want, phase = naive_dsp.osc_bank(3, case["chan"], FS, case["freq"], case["amp"], case["phase"], 64, n, case["sched"])
+    want, phase = naive_dsp.osc_bank(3, case["chan"], FS, case["freq"], case["amp"], case["phase"], 64, n,
+                                     case["sched"])
     # Error budget: <= 256 complex rotations between exact anchors at ~2 ulp each (~1e-13),
     # the float-rounded ramp step DINC (R^2 * 1e-17 cycles) and np.cos' own rounding: 1e-12
     # of the summed amplitudes is a 10x margin.
@@ -132,7 +134,8 @@ def test_phase_exact_across_the_sample_count_fold():
     k0 = (1 << 30) - 1000
     bank.state[K.K] = k0
     bank.state[K.CLOCK] = k0 - k0 % K.ANCHOR  # re-anchor from the jumped count on the next anchor
-    bank.state[K.ZR], bank.state[K.ZI] = np.cos(2 * np.pi * naive_dsp.exact_cycles(f, FS, k0)), np.sin(2 * np.pi * naive_dsp.exact_cycles(f, FS, k0))
+    bank.state[K.ZR], bank.state[K.ZI] = (np.cos(2 * np.pi * naive_dsp.exact_cycles(f, FS, k0)),
+                                          np.sin(2 * np.pi * naive_dsp.exact_cycles(f, FS, k0)))
     out = np.zeros((1, 3000))
     bank.process(out)
     assert bank.state[K.K, 0] < 3000  # the fold happened
@@ -145,7 +148,8 @@ def test_cis_without_libm_is_accurate():
     """The kernels' own cos / sin (octant + Taylor) against long-double numpy on exactly reduced
     arguments, including tiny negative ones (the ramp step D): within 4e-16 absolute."""
     rng = np.random.default_rng(0)
-    c = np.concatenate([rng.uniform(-3, 3, 20000), rng.uniform(-1e-4, 1e-4, 2000), np.arange(-16, 17) / 16, [1 / 16 + 1e-17, -(1e-300)]])
+    c = np.concatenate([rng.uniform(-3, 3, 20000), rng.uniform(-1e-4, 1e-4, 2000), np.arange(-16, 17) / 16,
+                        [1 / 16 + 1e-17, -(1e-300)]])
     got = np.array([K._cis(x) for x in c])
     r = np.array([float(Fraction(x) - round(Fraction(x))) for x in c])
     rl = np.longdouble(r) * np.longdouble("6.283185307179586476925286766559")

@@ -14,13 +14,15 @@ def test_imports_only_numpy_and_numba():
     allowed = {"numpy", "numba", "math", "fractions", "rtctl._numba", "rtctl.dsp"}
     for path in Path(dsp.__file__).parent.glob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module] if isinstance(node, ast.ImportFrom) else []
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module] if isinstance(node, ast.ImportFrom) else [])
             for name in names:
                 assert any(name == ok or name.startswith(ok + ".") for ok in allowed), f"{path.name} imports {name}"
 
 
 def test_exports():
-    for name in ("OscillatorBank", "PulseTrain", "LockIn", "Ramp", "Fade", "osc_bank_process", "pulse_process", "lockin_process"):
+    for name in ("OscillatorBank", "PulseTrain", "LockIn", "Ramp", "Fade",
+                 "osc_bank_process", "pulse_process", "lockin_process"):
         assert hasattr(dsp, name), name
 
 

@@ -1,11 +1,11 @@
 """PulseTrain: exact twin, chunk invariance, edges, phase continuity, level mode."""
 
+import naive_dsp
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import naive_dsp
 from rtctl.dsp import PulseTrain, pulse_process
 
 FS = 48000.0
@@ -37,7 +37,9 @@ def test_matches_naive_twin_exactly():
     freqs = rng.uniform(0, 3000, 3)
     duty = rng.uniform(0, 1, 3)
     phase = rng.uniform(0, 1, 3)
-    sched = {700: [(1, dict(freq=1234.5, duty=0.1))], 2100: [(0, dict(freq=0.0)), (2, dict(high=3.0, low=-1.0))], 3000: [(0, dict(freq=77.7))]}
+    sched = {700: [(1, dict(freq=1234.5, duty=0.1))],
+             2100: [(0, dict(freq=0.0)), (2, dict(high=3.0, low=-1.0))],
+             3000: [(0, dict(freq=77.7))]}
     train = PulseTrain(3, FS, freqs, duty, 1.0, 0.0, phase)
     got = run(train, n, splits=range(0, n, 251), schedule=sched)
     for c in range(3):
@@ -46,7 +48,8 @@ def test_matches_naive_twin_exactly():
         assert np.array_equal(got[c], want), f"channel {c}"
 
 
-@given(splits=st.lists(st.integers(1, 2999), max_size=20), changes=st.lists(st.tuples(st.integers(0, 2999), st.floats(0, FS / 2), st.floats(0, 1)), max_size=5))
+@given(splits=st.lists(st.integers(1, 2999), max_size=20),
+       changes=st.lists(st.tuples(st.integers(0, 2999), st.floats(0, FS / 2), st.floats(0, 1)), max_size=5))
 @settings(max_examples=40, deadline=None)
 def test_chunk_invariance(splits, changes):
     sched = {}
@@ -57,7 +60,8 @@ def test_chunk_invariance(splits, changes):
     assert np.array_equal(one, many)
 
 
-@pytest.mark.parametrize("freq, duty", [(250.0, 0.5), (333.0, 0.2), (17.0, 0.75), (4000.0, 0.5)], ids=["250Hz-50%", "333Hz-20%", "17Hz-75%", "4kHz-50%"])
+@pytest.mark.parametrize("freq, duty", [(250.0, 0.5), (333.0, 0.2), (17.0, 0.75), (4000.0, 0.5)],
+                         ids=["250Hz-50%", "333Hz-20%", "17Hz-75%", "4kHz-50%"])
 def test_frequency_and_duty_from_edges(freq, duty):
     train = PulseTrain(1, FS, freq, duty, high=5.0, low=0.0)
     y = run(train, int(FS))[0]
@@ -112,7 +116,8 @@ def test_adds_into_out_and_kernel_args():
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [(dict(freq=-1.0), r"freq = -1.0 Hz"), (dict(duty=1.5), r"duty = 1.5 is out of range"), (dict(high=np.nan), "high"), (dict(phase=1.0), "phase")],
+    [(dict(freq=-1.0), r"freq = -1.0 Hz"), (dict(duty=1.5), r"duty = 1.5 is out of range"), (dict(high=np.nan), "high"),
+     (dict(phase=1.0), "phase")],
     ids=["negative-freq", "duty-above-1", "nan-level", "phase-1"],
 )
 def test_validation(kwargs, match):

@@ -143,11 +143,32 @@ def test_queue_producer_thread_against_a_consumer_thread():
 
 def test_a_scene_gets_only_the_stages_it_needs():
     names = lambda sc: [s.name for s in build(scene.load(*sc)).stages]  # noqa: E731
-    assert names(("line-bimorph-5", ["timing.duration=0.01"])) == [
-        "params", "sim read", "clear", "oscillators", "limiter", "sim group 0"]
+    assert names(("line-bimorph-5", ["timing.duration=0.01"])) == ["params", "clear", "oscillators", "limiter"]
     assert names(("line-bimorph-5", ["control.observe=true"])) == [
-        "params", "sim read", "clear", "oscillators", "limiter", "observer lateral", "sim group 0"]
-    assert names(("solenoid-3x3", [])) == ["params", "sim read", "clear", "pulses", "limiter", "sim group 0"]
+        "params", "clear", "oscillators", "limiter", "observer lateral"]
+    assert names(("solenoid-3x3", [])) == ["params", "clear", "pulses", "limiter"]
+
+
+@pytest.mark.parametrize("name, over", [("line-bimorph-5", ["control.observe=true"]), ("solenoid-3x3", []),
+                                        ("line-bimorph-5-closed", ["events.0.at=0.1", "events.1.at=0.15",
+                                                                   "events.2.at=0.2"])])
+def test_the_simulated_device_inside_the_block_function_changes_nothing(name, over, monkeypatch):
+    """SimDevice.in_block runs the plants as stages of the block function instead of from read
+    and write: the same blocks, bitwise (events and controllers included)."""
+    from rtctl.io.sim import SimDevice
+
+    sc = scene.load(name, [*over, "timing.duration=0.3"])
+    a = build(sc)
+    monkeypatch.setattr(SimDevice, "in_block", True)
+    b = build(sc)
+    assert [s.name for s in b.stages][:2] == ["params", "sim read"] and b.stages[-1].name.startswith("sim group")
+    for k in range(int(0.3 * a.fs / a.block)):
+        a.apply_schedule(k)
+        b.apply_schedule(k)
+        assert a.advance() == b.advance()
+        np.testing.assert_array_equal(a.out, b.out)
+        np.testing.assert_array_equal(a.sensed, b.sensed)
+        np.testing.assert_array_equal(a.truth, b.truth)
 
 
 def test_schedule_changes_reach_pending_only_through_the_block_function():

@@ -61,9 +61,9 @@ print(json.dumps({
     # the block function is composed of exactly the stages the scene needs, and imports only
     # their kernels; the lock-in, pulse trains, ramps and fades were never compiled
     assert d["composed"] == "composed"
-    assert d["stages"] == ["params", "sim read", "clear", "oscillators", "limiter", "sim group 0"]
+    assert d["stages"] == ["params", "clear", "oscillators", "limiter"]
     kernels = sorted(ln.split(" import ")[1].split(" as ")[0] for ln in d["imports"])
-    assert kernels == sorted(["drain", "deliver", "clear", "osc_bank_process", "limit_block", "sim_group_process", "group_status"]), kernels
+    assert kernels == sorted(["drain", "clear", "osc_bank_process", "limit_block"]), kernels
     assert d["compiled"] == {"lockin_process": 0, "pulse_process": 0, "ramp_process": 0, "fade_process": 0}
     assert d["faults"] == []
 

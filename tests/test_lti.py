@@ -40,13 +40,13 @@ def test_c2d_matches_scipy(method, seed):
 
 
 def radau(sys, u_of_t, t_eval, x0=None, method="Radau"):
-    """Reference solution of the continuous model (``sys.dynamics``) by ``solve_ivp``."""
+    """Reference solution of the continuous model (``sys.rhs``) by ``solve_ivp``."""
     x0 = np.zeros(sys.n_states) if x0 is None else x0
     kw = dict(jac=lambda t, x: sys.A) if method == "Radau" else {}
-    sol = solve_ivp(lambda t, x: sys.dynamics(t, x, u_of_t(t)), (0.0, t_eval[-1]), x0,
+    sol = solve_ivp(lambda t, x: sys.rhs(t, x, u_of_t(t)), (0.0, t_eval[-1]), x0,
                     method=method, t_eval=t_eval, rtol=1e-12, atol=1e-20, **kw)
     assert sol.success
-    return np.array([sys.output(t, x, u_of_t(t)) for t, x in zip(sol.t, sol.y.T)])
+    return np.array([sys.outputs(x, u_of_t(t)) for t, x in zip(sol.t, sol.y.T)])
 
 
 def test_zoh_step_is_exact():
@@ -64,7 +64,7 @@ def test_zoh_held_pulse_is_exact():
     u = np.zeros(n)
     u[0] = 1.0
     y, _ = c2d(sys, DT).simulate(u)
-    first = solve_ivp(lambda t, x: sys.dynamics(t, x, [1.0]), (0, DT), np.zeros(2),
+    first = solve_ivp(lambda t, x: sys.rhs(t, x, [1.0]), (0, DT), np.zeros(2),
                       method="Radau", rtol=1e-12, atol=1e-20)
     ref = radau(sys, lambda t: np.array([0.0]), np.arange(n - 1) * DT, x0=first.y[:, -1])
     np.testing.assert_allclose(y[1:, 0], ref[:, 0], rtol=0, atol=1e-10 * np.abs(ref).max())
@@ -126,7 +126,7 @@ def test_tone_state_and_augment_shapes():
     x0[3:] = tone_state([2.0, 0.5], [0.3, 1.0])
     # Output at t = 0 includes D times the tones' sine components on input 1.
     expect = sys.D[:, 1] * (2.0 * np.sin(0.3) + 0.5 * np.sin(1.0))
-    np.testing.assert_allclose(aug.output(0, x0, [0.0, 0.0]), expect, rtol=1e-14)
+    np.testing.assert_allclose(aug.outputs(x0, [0.0, 0.0]), expect, rtol=1e-14)
 
 
 def impulse(sysd, n=400):

@@ -1,11 +1,11 @@
 """Work-precision problems: references against scipy, kernels against dlsim and naive twins,
 convergence orders, and the generic group adapter on a toy nonlinear plant."""
 
+import naive_numerics as toy
 import numpy as np
 import pytest
 import scipy.signal
 
-import naive_numerics as toy
 from rtctl.errors import ModelError
 from rtctl.numerics import problems as P
 from rtctl.numerics.runner import LtiRunner

@@ -1,10 +1,10 @@
 """Stability cases of the numerics report (quick sizes; the 1e8-sample run is slow), and the
 contact hook on a toy plant."""
 
+import naive_numerics as toy
 import numpy as np
 import pytest
 
-import naive_numerics as toy
 from rtctl.numerics import stability as S
 
 QUICK = [n for n in S.CASES if n != "energy_drift"]

@@ -9,7 +9,8 @@ from rtctl import perception
 
 @pytest.mark.parametrize(
     "receptor, band, um",
-    [("meissner", (1, 300), 6.0), ("merkel", (0, 30), 30.0), ("ruffini", (0, 15), 300.0), ("pacinian", (5, 1000), 0.08)],
+    [("meissner", (1, 300), 6.0), ("merkel", (0, 30), 30.0), ("ruffini", (0, 15), 300.0),
+     ("pacinian", (5, 1000), 0.08)],
 )
 def test_seed_000_bands_and_thresholds(receptor, band, um):
     lo, hi = band

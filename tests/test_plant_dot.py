@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from naive_em import dot_simulate
 from scipy.integrate import solve_ivp
 
-from naive_em import dot_simulate
 from rtctl.errors import ModelError
 from rtctl.plant.dot import DotGroup, DotPin
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from naive_em import em_simulate
 from scipy.integrate import solve_ivp
 
-from naive_em import em_simulate
 from rtctl.errors import ModelError
 from rtctl.plant.em import EMGroup, EMPlant
 from rtctl.plant.finger import MaxwellLoad

@@ -2,6 +2,7 @@
 
 import math
 
+import naive_hybrid as nh
 import numpy as np
 import pytest
 import scipy.signal as ss
@@ -9,10 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
 
-import naive_hybrid as nh
 from rtctl.errors import ModelError
-from rtctl.plant.hybrid import (HybridBuilder, HybridGroup, HybridModel, Lin, hybrid_process,
-                                unilateral)
+from rtctl.plant.hybrid import HybridBuilder, HybridGroup, HybridModel, Lin, hybrid_process, unilateral
 
 FS = 48000.0
 

@@ -1,11 +1,11 @@
 """Kernels of rtctl.plant._kernels against their naive twins, chunk invariance, status bits."""
 
+import naive_plant
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import naive_plant
 from rtctl._numba import TINY
 from rtctl.plant import _kernels as K
 

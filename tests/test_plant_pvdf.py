@@ -2,6 +2,7 @@
 
 import math
 
+import naive_pvdf
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -9,7 +10,6 @@ from hypothesis import strategies as st
 from scipy.integrate import dblquad
 from scipy.signal import dlsim, find_peaks, hilbert
 
-import naive_pvdf
 from rtctl.errors import ModelError
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.lti import c2d
@@ -95,7 +95,7 @@ def test_modal_force_matches_quadrature(plate):
         for j in (0, 19, 47):
             xc, yc = plate.cell_centres[j]
 
-            def f(y, x):
+            def f(y, x, al=al, be=be):
                 return -(ex * al**2 + ey * be**2) * norm * math.sin(al * x) * math.sin(be * y)
 
             val, _ = dblquad(f, xc - hw, xc + hw, yc - hh, yc + hh, epsabs=0, epsrel=1e-11)
@@ -296,8 +296,8 @@ def test_beat_superposition_at_the_measurement_point(plate):
     nc = 48
     Hd = c2d(plate.sys, 1 / FS, "zoh").frequency_response([100.0, 110.0])
     t = np.arange(n)[sl] / FS
-    for row, x, x1000, seed_carrier_tol in ((4 * nc, disp, d1000, 0.1),
-                                            (4 * nc + 2, acc, a1000, 1.0)):
+    for row, x, _x1000, seed_carrier_tol in ((4 * nc, disp, d1000, 0.1),
+                                             (4 * nc + 2, acc, a1000, 1.0)):
         h1, h2 = 250 * Hd[0, row, 19] / 1j, 250 * Hd[1, row, 20] / 1j
         a1, a2 = abs(h1), abs(h2)
         z = hilbert(x)

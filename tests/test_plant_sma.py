@@ -2,13 +2,13 @@
 
 import math
 
+import naive_sma
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
-import naive_sma
 from rtctl.errors import ModelError
 from rtctl.plant import _sma_kernels as K
 from rtctl.plant.sma import SmaGroup, SmaTaxel, sma_group_process

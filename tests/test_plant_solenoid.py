@@ -2,12 +2,12 @@
 
 import math
 
+import naive_hybrid as nh
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import naive_hybrid as nh
 from rtctl.dsp.pulse import PulseTrain
 from rtctl.errors import ModelError
 from rtctl.plant.solenoid import SolenoidGroup, SolenoidPin

@@ -5,9 +5,9 @@ import cv2
 import numpy as np
 import pytest
 from matplotlib import cbook
+from naive_render import naive_beat, naive_max_window_count
 from scipy.signal import hilbert
 
-from naive_render import naive_beat, naive_max_window_count
 from rtctl.errors import SceneError
 from rtctl.render import _kernels as _k
 from rtctl.render.beat import BeatRenderer, blob_labels, carrier_amplitude

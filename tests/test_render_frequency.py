@@ -5,9 +5,9 @@ import cv2
 import numpy as np
 import pytest
 from matplotlib import cbook
+from naive_render import naive_frequency
 from scipy import ndimage
 
-from naive_render import naive_frequency
 from rtctl.errors import SceneError
 from rtctl.render.frequency import FrequencyRenderer, tactile_image
 from rtctl.render.image import load_image, to_gray

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 from matplotlib import cbook
-
 from naive_render import naive_roi
+
 from rtctl.render.factory import make_renderer
 from rtctl.render.image import load_image, to_gray
 from rtctl.render.roi import RoiRenderer, canny_lines

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from rtctl import scene
-from rtctl.errors import SceneError
 from rtctl.engine.run import run
+from rtctl.errors import SceneError
 from rtctl.needs import needs
 from rtctl.trace import TraceReader
 

@@ -3,13 +3,13 @@ preload, and per-type scene keys."""
 
 import numpy as np
 import pytest
+from test_rig import drive_of
 
 from rtctl import scene
-from rtctl.errors import SceneError
-from rtctl.needs import needs
 from rtctl.engine.rig import build
+from rtctl.errors import SceneError
 from rtctl.models import finger_load
-from test_rig import drive_of
+from rtctl.needs import needs
 
 
 def test_square_tone_is_plus_minus_voltage_at_half_duty_after_its_start():

@@ -1,9 +1,9 @@
 """The final limiter against closed forms and its naive twin."""
 
+import naive_loop
 import numpy as np
 import pytest
 
-import naive_loop
 from rtctl import safety
 from rtctl.safety import LIMIT_SLEW, LIMIT_VOLTAGE, NONFINITE, OVERTEMP, Limiter
 
@@ -108,7 +108,8 @@ def test_rejects_unsafe_parameters():
 
 
 def test_describe_names_bits():
-    assert safety.describe(NONFINITE | LIMIT_VOLTAGE) == ["voltage limited", "non-finite drive request (NaN/Inf) replaced by 0 V"]
+    assert safety.describe(NONFINITE | LIMIT_VOLTAGE) == ["voltage limited",
+                                                          "non-finite drive request (NaN/Inf) replaced by 0 V"]
 
 
 def test_shutdown_lengthens_the_fade_when_the_slew_limit_needs_it():

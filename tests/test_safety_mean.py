@@ -4,10 +4,10 @@ forms and the naive twin (whose ceiling comes from scipy's brentq, not a bisecti
 import json
 import math
 
+import naive_loop
 import numpy as np
 import pytest
 
-import naive_loop
 from rtctl.safety import LIMIT_DC, LIMIT_DUTY, Limiter
 
 FS, BLOCK = 48000.0, 32

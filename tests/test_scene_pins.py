@@ -8,8 +8,8 @@ import pytest
 from rtctl import scene
 from rtctl.cli import main
 from rtctl.engine.run import run
-from rtctl.render.braille import braille_frames
 from rtctl.model_report import model_facts
+from rtctl.render.braille import braille_frames
 from rtctl.trace import TraceReader
 
 

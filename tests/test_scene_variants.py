@@ -12,7 +12,12 @@ from rtctl.cli import main
 PHOTO = cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)
 
 VARIANTS = {
-    "line-bimorph-5": ["stimulus.kind=image", "stimulus.method=beat", f"stimulus.image={PHOTO}", "stimulus.voltage=100.0"],
+    "line-bimorph-5": ["stimulus.kind=image", "stimulus.method=beat", f"stimulus.image={PHOTO}",
+                       "stimulus.voltage=100.0"],
+    # the image open loop while the finger presses, lifts and returns within the half second
+    "line-bimorph-5-closed": ["control.mode=open", "stimulus.kind=image", "stimulus.method=beat",
+                              f"stimulus.image={PHOTO}", "stimulus.voltage=100.0", "events.0.at=0.1",
+                              "events.1.at=0.2", "events.2.at=0.3"],
     "pvdf-6x8": ["stimulus.kind=image", "stimulus.method=beat", f"stimulus.image={PHOTO}"],
     "solenoid-3x3": ["stimulus.kind=image", "stimulus.method=frequency", f"stimulus.image={PHOTO}"],
     "dot-4x4": ["stimulus.kind=image", "stimulus.method=canny", f"stimulus.image={PHOTO}", "stimulus.speed=2000.0"],

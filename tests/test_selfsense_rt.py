@@ -4,8 +4,8 @@ import math
 
 import numpy as np
 import pytest
-
 from naive_selfsense import observer_block, rebuild
+
 from rtctl.plant import Amplifier, BimorphPlant, CurrentSense, SimGroup
 from rtctl.plant.beam import BeamSpec, Layer, build_beam
 from rtctl.plant.materials import BUILTIN

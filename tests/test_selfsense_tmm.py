@@ -4,8 +4,8 @@ import math
 
 import numpy as np
 import pytest
-
 from naive_selfsense import piece_matrix as naive_piece
+
 from rtctl.plant.materials import BUILTIN
 from rtctl.selfsense.tmm import Support, TMMBeam, laminate_of, piece_matrix
 

@@ -296,8 +296,9 @@ def test_writes_never_wait_for_a_device_that_does_not_read(device):
         for k in range(20000):
             be._send_raw(frame)
             if be.error:
-                break
-        sent.append(k)
+                sent.append(k)  # the write that saw the error
+                return
+        sent.append(19999)  # ran out of frames
 
     t = threading.Thread(target=write_until_error, daemon=True)
     t.start()

@@ -27,10 +27,10 @@ BLOCK_S = 32 / 48000.0
 
 
 class Emulator:
-    """``python -m rtctl.io.emulate_serial SCENE ARGS`` with its port path read off stdout."""
+    """``python -m rtctl.emulate.serial SCENE ARGS`` with its port path read off stdout."""
 
     def __init__(self, name, *args):
-        self.proc = subprocess.Popen([sys.executable, "-m", "rtctl.io.emulate_serial", name, *args],
+        self.proc = subprocess.Popen([sys.executable, "-m", "rtctl.emulate.serial", name, *args],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         # the first run may compile the plant kernels; later runs load them from the cache
         if not select.select([self.proc.stdout], [], [], 120)[0]:

@@ -184,7 +184,7 @@ def test_corrupted_checksum_is_rejected_with_its_sequence_number():
 
 def test_corrupted_frame_gets_a_nack_from_the_firmware():
     from rtctl import scene
-    from rtctl.io.emulate_serial import Firmware
+    from rtctl.emulate.serial import Firmware
 
     fw = Firmware(scene.load("dot-4x4"))
     wire = bytearray(P.pins(42, [P.UP] * 16))

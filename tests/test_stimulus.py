@@ -4,13 +4,13 @@ says, through pulse trains (levels, pin frequencies) or the oscillator bank (bea
 import cv2
 import numpy as np
 import pytest
+from test_rig import drive_of
 
 from rtctl import scene
+from rtctl.engine.rig import build
 from rtctl.needs import needs
 from rtctl.render.braille import braille_frames
 from rtctl.render.factory import make_renderer
-from rtctl.engine.rig import build
-from test_rig import drive_of
 
 GROUP = """
 [scene]

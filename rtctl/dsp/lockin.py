@@ -179,7 +179,8 @@ class LockIn:
             hop = max(d for d in range(1, min(32, self.window) + 1) if self.window % d == 0)
         self.hop = _check_int("hop", hop, 1, self.window)
         if self.window % self.hop:
-            raise ValueError(f"window = {self.window} is not a multiple of hop = {self.hop}: choose hop dividing window")
+            raise ValueError(
+                f"window = {self.window} is not a multiple of hop = {self.hop}: choose hop dividing window")
         self.ramp = _check_int("ramp", ramp, 1, _k.MAX_RAMP)
         f = np.asarray(freq, dtype=np.float64)
         if f.ndim == 1:
@@ -269,5 +270,6 @@ class LockIn:
         bad = ~((f >= 0.0) & (f <= self.fs / 2))
         if bad.any():
             c, j = np.argwhere(bad)[0]
-            raise ValueError(f"freq[{c}, {j}] = {f[c, j]} Hz is out of range: allowed 0 <= freq <= fs / 2 = {self.fs / 2} Hz (NaN or 0: unused)")
+            raise ValueError(f"freq[{c}, {j}] = {f[c, j]} Hz is out of range: "
+                             f"allowed 0 <= freq <= fs / 2 = {self.fs / 2} Hz (NaN or 0: unused)")
         return np.ascontiguousarray(f, dtype=np.float64)

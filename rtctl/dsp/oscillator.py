@@ -9,6 +9,7 @@ reference starts at the same sample reads that tone back with the same phase.
 import numpy as np
 
 from rtctl.dsp import _kernels as _k
+from rtctl.dsp._routed import Routed
 
 __all__ = ["OscillatorBank", "beat_tones"]
 
@@ -95,7 +96,7 @@ def beat_tones(carrier, beat, amp):
     return np.array([carrier - beat / 2, carrier + beat / 2]), np.array([amp / 2, amp / 2])
 
 
-class OscillatorBank:
+class OscillatorBank(Routed):
     """A bank of phase-continuous cosine tones added into the rows of a block.
 
     Parameters
@@ -147,7 +148,6 @@ class OscillatorBank:
     >>> bank.set(1, freq=80.0, amp=0.0)   # ramped over the next 32 samples
     """
 
-    _post = None  # see route()
 
     def __init__(self, n_channels, tone_channel, fs, freq, amp, phase=0.0, ramp=32):
         self.n_channels = _check_int("n_channels", n_channels, 1)
@@ -159,7 +159,8 @@ class OscillatorBank:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise ValueError(
-                f"tone_channel[{i}] = {chan[i]} is out of range: allowed 0 <= tone_channel < n_channels = {self.n_channels}"
+                f"tone_channel[{i}] = {chan[i]} is out of range: "
+                f"allowed 0 <= tone_channel < n_channels = {self.n_channels}"
             )
         self.n_tones = chan.shape[0]
         self.chan = np.ascontiguousarray(chan, dtype=np.int64)
@@ -251,18 +252,6 @@ class OscillatorBank:
         )
 
     # ---- targets -----------------------------------------------------------------------------
-    def route(self, post) -> None:
-        """Hand parameter changes to ``post(row, cols, values)`` instead of writing ``pending``
-        (``None``: write it again). An engine whose block function drains a queue into
-        ``pending`` routes them there, so that the block function stays its only writer."""
-        self._post = post
-
-    def _write(self, row, cols, values) -> None:
-        if self._post is None:
-            self.pending[row, cols] = values
-        else:
-            self._post(row, cols, values)
-
     def set(self, i, freq=None, amp=None, ramp=None):
         """Ramp tone ``i`` to ``freq`` (Hz) and/or ``amp`` from the start of the next call.
 

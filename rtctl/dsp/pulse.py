@@ -3,12 +3,13 @@
 import numpy as np
 
 from rtctl.dsp import _kernels as _k
+from rtctl.dsp._routed import Routed
 from rtctl.dsp.oscillator import _check_block, _check_fs, _check_int, _vector
 
 __all__ = ["PulseTrain"]
 
 
-class PulseTrain:
+class PulseTrain(Routed):
     """Per channel a rectangular wave between a high and a low level, or a held level.
 
     Parameters
@@ -32,10 +33,11 @@ class PulseTrain:
     -----
     The position in the cycle is an integer count of ``2**-40`` cycle advanced exactly (a DDS
     accumulator), so edges never drift; the frequency is ``freq`` rounded to ``fs * 2**-40``
-    (4.4e-8 Hz at 48 kHz, a relative 4e-8 at 1 Hz), the duty to ``2**-40``. Changes written by :meth:`set` take effect at the start of the next
-    :meth:`process` call, without a ramp (pins are binary): a frequency change keeps the
-    current position within the cycle, so the wave is phase-continuous. :meth:`set_level` is the
-    pure level mode for latching pins (output ``high`` when on, ``low`` when off).
+    (4.4e-8 Hz at 48 kHz, a relative 4e-8 at 1 Hz), the duty to ``2**-40``. Changes written by
+    :meth:`set` take effect at the start of the next :meth:`process` call, without a ramp (pins
+    are binary): a frequency change keeps the current position within the cycle, so the wave is
+    phase-continuous. :meth:`set_level` is the pure level mode for latching pins (output ``high``
+    when on, ``low`` when off).
 
     Like the oscillator bank, the train *adds* into ``out``. For the loop:
     ``pulse_process(*train.args, out)`` with ``train.args == (state, pending)``.
@@ -49,7 +51,6 @@ class PulseTrain:
     array([1., 1., 0., 0., 1., 1., 0., 0.])
     """
 
-    _post = None  # see route()
 
     def __init__(self, n_channels, fs, freq=0.0, duty=0.5, high=1.0, low=0.0, phase=0.0):
         self.n_channels = _check_int("n_channels", n_channels, 1)
@@ -90,18 +91,6 @@ class PulseTrain:
         self.state[_k.POS] = np.floor(phase * _k.PULSE_UNIT)
         self.state[_k.PFS] = self.fs
         _k.pulse_process(self.state, self.pending, np.zeros((self.n_channels, 0)))
-
-    def route(self, post) -> None:
-        """Hand parameter changes to ``post(row, cols, values)`` instead of writing ``pending``
-        (``None``: write it again). An engine whose block function drains a queue into
-        ``pending`` routes them there, so that the block function stays its only writer."""
-        self._post = post
-
-    def _write(self, row, cols, values) -> None:
-        if self._post is None:
-            self.pending[row, cols] = values
-        else:
-            self._post(row, cols, values)
 
     def set(self, c, freq=None, duty=None, high=None, low=None):
         """Change channel ``c`` from the start of the next call; ``None`` keeps a parameter."""

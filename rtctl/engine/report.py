@@ -102,6 +102,7 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             "felt": None,
             "contact": contact,
             "v_peak": float(np.max(np.abs(drive))) if n else 0.0,
+            "freqs_hz": freqs or None,
             "limited": bool(rig.limiter.counts[:, ch].sum() > 0),
             "limited_by": limited_by(rig.limiter, ch),
         }
@@ -127,13 +128,73 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             row["true_um"] = amp
             if target_m and math.isfinite(target_m):
                 row["error_pct"] = 100.0 * (amp * 1e-6 - target_m) / target_m
-            if main.shape == "sine":
+            if main.shape == "sine" and rig.events:
+                # the run is a sequence of segments (start, then each event): the amplitude each
+                # settled to and how long that took; the row reports the last amplitude (the
+                # error against the target) and the worst settle over all segments
+                start = min(tn.start for tn in tones)
+                segs = _event_settles(rig, tip, t, freqs, n / fs, start)
+                row["events"] = segs[1:]
+                last = segs[-1]["true_um"]
+                if last is not None:
+                    row["true_um"] = amp = last
+                    if target_m and math.isfinite(target_m):
+                        row["error_pct"] = 100.0 * (amp * 1e-6 - target_m) / target_m
+                times = [sg["settle_ms"] for sg in segs]
+                row["settle_ms"] = None if any(x is None for x in times) else max(times)
+            elif main.shape == "sine":
                 st = settle_time(tip, t, freqs, min(tn.start for tn in tones), amp)
                 row["settle_ms"] = None if st is None else 1e3 * st
         _estimate(row, reader, ch, n_b, block / fs, freqs, target_m)
         _felt(row, contact)
         rows.append(row)
+    _control(rig, rows)
     return rows
+
+
+def _control(rig, rows) -> None:
+    """Closed loop: per channel under amplitude control, whether its controller ended saturated
+    (the target out of reach at the channel's max_voltage) and what amplitude it reached there,
+    from the controllers' final state."""
+    if not rig.controllers:
+        return  # open loop: rtctl.control is neither needed nor imported
+    from ..control._kernels import BANK, CHANNEL, CMD, EST, SAT
+
+    for _, st, ctl in rig.controllers:
+        for j in range(ctl.n):
+            row = rows[int(ctl.index[CHANNEL, j])]
+            row["controlled"] = True
+            row["observer_window_s"] = st.observer.window / rig.fs
+            # how far the calibrated model's amplitude scale may be off (None: uncalibrated)
+            row["uncertainty_pct"] = rig.calibration.uncertainty_pct(row["group"]) if rig.calibration else None
+            sat = bool(ctl.state[SAT, j])
+            row["saturated"] = row.get("saturated", False) or sat
+            row.setdefault("command_v", {})[int(ctl.index[BANK, j])] = float(ctl.state[CMD, j])
+            if sat:  # what the estimate shows at the cap (the run's final window), else the last one used
+                est = row.get("estimated_um")
+                row["reachable_um"] = est if est is not None else (row.get("reachable_um") or 0.0) + float(
+                    ctl.state[EST, j]) * 1e6
+
+
+def _event_settles(rig, tip, t, freqs, t_end, start) -> list[dict]:
+    """Per segment of the run (from ``start``, then from each event): the true amplitude it
+    settled to (over the last analysis window before the next event or the run's end) and how
+    long after the segment's start that took (5 % band)."""
+    out = []
+    starts = [start] + [ev.block * rig.block / rig.fs for ev in rig.events]
+    for i, t0 in enumerate(starts):
+        t1 = starts[i + 1] if i + 1 < len(starts) else t_end
+        if t0 >= t_end:
+            break
+        win = min(analysis_window(t1 - t0, freqs), (t1 - t0) / 2)
+        m = (t >= t1 - win) & (t < t1)
+        ok = m.sum() > 8 and np.all(np.isfinite(tip[m]))
+        final = float(fit_amplitudes(tip[m], t[m], freqs).sum()) if ok else math.nan
+        seg = (t >= t0) & (t < t1)
+        st = settle_time(tip[seg], t[seg], freqs, t0, final) if math.isfinite(final) else None
+        out.append({"t_s": t0, "true_um": final if math.isfinite(final) else None,
+                    "settle_ms": None if st is None else 1e3 * st})
+    return out
 
 
 def _felt(row, contact: bool) -> None:
@@ -185,10 +246,15 @@ def print_table(summary: dict) -> None:
     print("-" * len(head))
     for r in summary["channels"]:
         felt = {None: "-", True: "yes", False: "NO" if r["contact"] else "NO (no contact)"}[r["felt"]]
+        if r.get("saturated"):
+            note = f" (saturated at max_voltage: reaches {_fmt(r.get('reachable_um'), '.3g')} um)"
+        elif r["limited"]:
+            note = " (limited: " + ", ".join(r.get("limited_by") or ["?"]) + ")"
+        else:
+            note = ""
         print(f"{r['name']:<12}{(r['receptor'] or '-'):<10}{_fmt(r['freq_hz'], '9.1f')}{r['v_peak']:8.1f}"
               f"{_fmt(r['true_um'], '10.3g')}{_fmt(r['threshold_um'], '10.3g')}{_fmt(r['target_um'], '10.3g')}"
-              f"{_fmt(r['error_pct'], '9.1f')}{_fmt(r['settle_ms'], '10.0f')}  {felt}"
-              f"{' (limited: ' + ', '.join(r.get('limited_by') or ['?']) + ')' if r['limited'] else ''}")
+              f"{_fmt(r['error_pct'], '9.1f')}{_fmt(r['settle_ms'], '10.0f')}  {felt}{note}")
 
 
 def limited_by(limiter, ch: int) -> list[str]:
@@ -228,6 +294,42 @@ def plot_channels(rows: list[dict], max_rows: int = 8) -> tuple[list[int], str]:
     return chosen, f"{len(chosen)} of {len(rows)} channels shown (driven first)"
 
 
+def amplitude_track(t, x, freqs, start: float = 0.0):
+    """The amplitude of ``x`` at ``freqs`` (summed: a beat pair's envelope peak) over time: fits
+    over windows of one period of the lowest tone (at least 4 ms) at half-window steps; returns
+    (window centres, amplitudes)."""
+    w = max(1.0 / min(freqs), 4e-3)
+    edges = np.arange(start, t[-1] - w, w / 2)
+    amps = np.full(edges.size, np.nan)
+    for k, e in enumerate(edges):
+        m = (t >= e) & (t < e + w)
+        if np.all(np.isfinite(x[m])):
+            amps[k] = fit_amplitudes(x[m], t[m], freqs).sum()
+    return edges + w / 2, amps
+
+
+def _amplitude_panel(ax, r, reader, ch, t, n, has_tip) -> None:
+    """A controlled channel: true amplitude (windowed fits of the truth) and the observer's
+    estimate over time against the target and its +-2 % band."""
+    tgt = reader.signal("target_um", ch)[: n // reader.block] if "target_um" in reader.units else None
+    tb = np.arange(tgt.size) * reader.block / reader.fs if tgt is not None else None
+    if tgt is not None and np.any(np.isfinite(tgt)):
+        ax.fill_between(tb, 0.98 * tgt, 1.02 * tgt, color="0.85", step="post", label="target +-2 %")
+        ax.plot(tb, tgt, color="k", lw=0.7, drawstyle="steps-post")
+    if has_tip and r.get("freqs_hz"):
+        tc, amp = amplitude_track(t, reader.signal("tip_um", ch)[:n], r["freqs_hz"])
+        ax.plot(tc, amp, color="C1", lw=0.9, label="true")
+    if "estimated_um" in reader.units:
+        est = reader.signal("estimated_um", ch)[: n // reader.block]
+        te = np.arange(est.size) * reader.block / reader.fs
+        est = np.where(te >= r.get("observer_window_s", 0.0), est, np.nan)  # a window not yet full
+        ax.plot(te, est, color="C2", lw=0.7, label="estimated")
+    if r.get("threshold_um") is not None:
+        ax.axhline(r["threshold_um"], ls="--", color="k", lw=0.6, label="threshold")
+    ax.set_ylabel("amplitude um")
+    ax.set_ylim(bottom=0)
+
+
 def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> None:
     """plot.png: drive voltage and true tip displacement against the threshold and target lines
     for up to ``max_rows`` channels (:func:`plot_channels`), and a bar chart of every channel's
@@ -250,7 +352,12 @@ def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> N
         ax.plot(*_envelope(t, reader.signal("drive", ch)[:n]), lw=0.6, color="C0")
         ax.set_ylabel("drive V")
         ax.set_title(f"{r['name']}  {_fmt(r['freq_hz'], '.0f')} Hz  {r['receptor'] or ''}", fontsize=9, loc="left")
-        if has_tip:
+        if r.get("controlled"):
+            bx = fig.add_subplot(gs[i, 1], sharex=ax)
+            _amplitude_panel(bx, r, reader, ch, t, n, has_tip)
+            if i == 0:
+                bx.legend(fontsize=7, loc="upper right")
+        elif has_tip:
             bx = fig.add_subplot(gs[i, 1], sharex=ax)
             bx.plot(*_envelope(t, reader.signal("tip_um", ch)[:n]), lw=0.6, color="C1", label="true tip")
             for key, style, label in (("threshold_um", "--", "threshold"), ("target_um", ":", "target")):
@@ -260,6 +367,9 @@ def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> N
             bx.set_ylabel("tip um")
             if i == 0:
                 bx.legend(fontsize=7, loc="upper right")
+        for ev in summary.get("events", ()):  # when the finger or a target changed
+            for a in fig.axes[-2:] if (r.get("controlled") or has_tip) else fig.axes[-1:]:
+                a.axvline(ev["at"], color="C3", lw=0.8, alpha=0.7)
     ax.set_xlabel("time s")
     cx = fig.add_subplot(gs[-1, :])
     x = np.arange(len(rows))

@@ -11,8 +11,11 @@ compiled function (:mod:`rtctl.engine.compose`)::
     oscillators   sine tones and beat pairs              (scenes with sines)
     pulses        square and pulse trains, held levels   (scenes with them)
     limiter       the final limiter: always, and always after every stage that writes ``out``
-    observer G    self-sensing of bimorph group G        (control.observe)
+    observer G    self-sensing of bimorph group G        (control.observe; per channel when closed)
+    control G     next block's tone amplitudes from G's estimates (control.mode = closed)
     [sim group i] the simulated plants advance by the limited block
+                  ([bracketed]: the simulated device's, with ``SimDevice.in_block``; else the
+                  engine calls its read and write around the block function)
 
 Everything a scene leaves out (see :mod:`rtctl.needs`) is neither imported nor compiled: e.g. an
 open-loop scene never touches ``rtctl.selfsense`` or ``cv2``.
@@ -50,7 +53,11 @@ class Rig:
         self.fs = float(scene.timing.fs)
         self.block = int(scene.timing.block)
         self.needs = needs(scene)
-        self.models = Models(scene)
+        from .calibrate import scene_calibration
+
+        # control.calibration: the rig's models take the device's fitted factors (None: nominal)
+        self.calibration = scene_calibration(scene)
+        self.models = Models(scene, factors=self.calibration.factors if self.calibration else None)
         names, groups, offsets = [], [], {}
         for g in scene.actuator:
             offsets[g.name] = len(names)
@@ -77,22 +84,35 @@ class Rig:
         self.tones, self.targets_um = self.stimulus.tones, self.stimulus.targets_um
         self.bank, self.pulses, self.render = self.stimulus.bank, self.stimulus.pulses, self.stimulus.render
         self._build_limiter(scene)
-        self.observers = []
-        if scene.control.observe or scene.control.mode == "closed":
+        self.closed = scene.control.mode == "closed"
+        self.observers, self.controllers = [], []  # (name, ObserverStage, group, first channel), ...
+        if scene.control.observe or self.closed:
             self._build_observers(scene)
+        if self.closed:
+            self._build_control(scene)
+        self.events, self._events_at = [], {}
+        if scene.get("events"):
+            from ..events import schedule
+
+            self.events = schedule(scene)
+            for ev in self.events:
+                self._events_at.setdefault(ev.block, []).append(ev)
         self.stages = self._stages()
         self._compile()
 
     # --- construction -----------------------------------------------------------------------
 
     def _build_sim(self, scene):
-        from ..io.sim import SimDevice, build_group
+        from ..io.sim import SimDevice, build_group, device_models
         from ..plant import TRUTH_NAMES
 
+        # the simulated hardware is built from its own models; the rig's are the scene's, or a
+        # calibration's, which the device must not become: only nominal ones are shared
+        hardware = device_models(scene, None if self.models.factors else self.models)
         groups, ch0, row0 = [], 0, 0
         for gi, g in enumerate(scene.actuator):
             n = n_channels(g)
-            sim = build_group(self.models, g, gi, self.fs, self.block)
+            sim = build_group(hardware, g, gi, self.fs, self.block)
             rows = n * sim.n_sensed
             groups.append((sim, slice(ch0, ch0 + n), slice(row0, row0 + rows)))
             self.sensed_names += [f"{g.name}.{i}.{lab}" for i in range(n) for lab in sim.sensed_labels]
@@ -100,7 +120,7 @@ class Rig:
             ch0, row0 = ch0 + n, row0 + rows
         self.truth_names = TRUTH_NAMES
         self.sensed = np.zeros((row0, self.block))
-        self.device = SimDevice(groups, self.out, self.sensed, len(TRUTH_NAMES))
+        self.device = SimDevice(groups, self.out, self.sensed, len(TRUTH_NAMES), hardware.factors)
         self.truth = self.device.truth
 
     def _build_backend(self, scene):
@@ -122,26 +142,77 @@ class Rig:
         self.probes = [(f"io.{pn}", unit, self.device, r) for r, (pn, unit) in enumerate(self.device.probe_names)]
 
     def _build_observers(self, scene):
-        """One self-sensing observer per bimorph group, on the scene's tone frequencies."""
+        """Self-sensing observers on the scene's tone frequencies: one per bimorph group, or, under
+        closed-loop control, one per channel, so that each channel's lock-in window holds whole
+        periods of its own tones only (a 250 Hz channel is not made to wait for a 2 Hz one)."""
         from ..selfsense.stage import ObserverStage
 
         if scene.stimulus.kind != "tones":
-            raise SceneError(f"{scene.source}: control.observe needs stimulus.kind = 'tones' (the observer "
-                             f"is designed on the tone frequencies; rendered stimuli change them), got "
-                             f"{scene.stimulus.kind!r}")
-        latency = scene.io.latency_blocks or int(self.device.latency_blocks)
+            raise SceneError(f"{scene.source}: control.{'mode = closed' if self.closed else 'observe'} needs "
+                             f"stimulus.kind = 'tones' (the observer is designed on the tone frequencies; "
+                             f"rendered stimuli change them), got {scene.stimulus.kind!r}")
+        self.latency = scene.io.latency_blocks or int(self.device.latency_blocks)
         ch0 = row0 = 0
         for g in scene.actuator:
             n, n_seg = n_channels(g), n_segments(g)
             if g.type == "bimorph":
-                per = [[f for tn in self.tones if tn.channel == c for f in tn.freqs] for c in range(ch0, ch0 + n)]
-                width = max(1, max(len(p) for p in per))
-                freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
-                obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[ch0:ch0 + n])
-                st = ObserverStage(obs, latency, self.out[ch0:ch0 + n], self.sensed[row0:row0 + n * n_seg],
-                                   self.estimated_amp[ch0:ch0 + n])
-                self.observers.append((g.name, st))
+                spans = [(c, c + 1) for c in range(ch0, ch0 + n)] if self.closed else [(ch0, ch0 + n)]
+                for c0, c1 in spans:
+                    per = [[f for tn in self.tones if tn.channel == c for f in tn.freqs] for c in range(c0, c1)]
+                    width = max(1, max(len(p) for p in per))
+                    freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
+                    obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[c0:c1])
+                    r0, r1 = row0 + (c0 - ch0) * n_seg, row0 + (c1 - ch0) * n_seg
+                    st = ObserverStage(obs, self.latency, self.out[c0:c1], self.sensed[r0:r1],
+                                       self.estimated_amp[c0:c1])
+                    name = g.name if not self.closed else f"{g.name}.{c0 - ch0}"
+                    self.observers.append((name, st, g, c0))
             ch0, row0 = ch0 + n, row0 + n * n_seg
+
+    def _build_control(self, scene):
+        """Amplitude control of every sine tone with a target, one controller per observer."""
+        from ..control import AmplitudeController
+
+        self.controlled = {}  # bank tone index -> (controller, its column)
+        per_channel = {}
+        for tone, bank in zip(self.tones, self.stimulus.bank_index):
+            per_channel[tone.channel] = per_channel.get(tone.channel, 0) + len(bank)
+        for name, st, g, c0 in self.observers:
+            obs = st.observer
+            finger = self.models.finger(g)
+            cols = []
+            for tone, bank in zip(self.tones, self.stimulus.bank_index):
+                c = tone.channel - c0
+                if not bank or not (0 <= c < obs.n_channels) or not np.isfinite(tone.target_m):
+                    continue
+                for f, b in zip(tone.freqs, bank):
+                    slot = int(np.nonzero(obs.freqs[c] == f)[0][0])
+                    # each tone's share of max_voltage, a hair below it: a sine at exactly the
+                    # bound would count as limited on rounding alone
+                    cols.append((c, slot, b, tone.channel, f, tone.target_m / len(bank),
+                                 g.max_voltage * (1.0 - 1e-9) / per_channel[tone.channel]))
+            if not cols:
+                continue
+            c_, slot, bank, chan, f, target, amax = (np.array(x) for x in zip(*cols))
+            # the model's tip per commanded volt under the assumed finger (amplifier included)
+            tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
+            ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
+            ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
+                                      obs.window // self.block, self.block, ring)
+            self.controllers.append((name, st, ctl))
+            for j, b in enumerate(bank):
+                self.controlled[int(b)] = (ctl, j)
+
+    def _start_controlled(self, i: int) -> bool:
+        """The stimulus' start of bank tone ``i``: a controlled tone starts under control."""
+        hit = self.controlled.get(i)
+        if hit is None:
+            return False
+        from ..control._kernels import ENABLE
+
+        ctl, j = hit
+        self.queue.post(self.queue.target_id(ctl.target), ENABLE, j, 1.0)
+        return True
 
     def _build_limiter(self, scene):
         from ..safety import Limiter
@@ -173,7 +244,10 @@ class Rig:
         from ..safety import limit_block
 
         pending = [x.pending for x in (self.bank, self.pulses) if x is not None]
-        self.queue = ParamQueue(pending)
+        self.queue = ParamQueue(pending + [ctl.target for _, _, ctl in self.controllers]
+                                + list(self.device.event_targets()))
+        if self.controllers:
+            self.stimulus.start_hook = self._start_controlled
         for x in (self.bank, self.pulses):
             if x is not None:
                 tid = self.queue.target_id(x.pending)
@@ -201,7 +275,17 @@ class Rig:
         if self.observers:
             from ..selfsense.stage import observe_stage
 
-            stages += [Stage(f"observer {name}", observe_stage, st.args, reset=st.reset) for name, st in self.observers]
+            control = {id(st): ctl for _, st, ctl in self.controllers}
+            for name, st, _, _ in self.observers:
+                stages.append(Stage(f"observer {name}", observe_stage, st.args, reset=st.reset))
+                ctl = control.get(id(st))
+                if ctl is not None:  # the next block's amplitudes, from this block's estimates
+                    from ..control import amplitude_control
+
+                    stages.append(Stage(f"control {name}", amplitude_control,
+                                        dict(est=st.observer.est, **ctl.args, pending=self.bank.pending,
+                                             lim_counts=self.limiter.counts, ramp=float(self.block)),
+                                        reset=ctl.reset))
         stages += [Stage(name, k, dict(enumerate(args)), status) for name, k, args, status in after]
         return stages
 
@@ -217,13 +301,15 @@ class Rig:
             self._block = None
             self.compose_note = f"stages called from Python ({e})"
         self.step()
-        self.device.compile()
+        if not self._device_in_block:  # else its kernels just compiled inside the block function
+            self.device.compile()
         self.reset()
         self.device.bind(self)  # a callback backend builds its callback now, not at run()
 
     def reset(self) -> None:
         """Every stage and the buffers back to rest (no block function may run meanwhile)."""
         self.out[...] = 0.0
+        self.targets_um[...] = self.stimulus.targets_um0
         self.estimated[...] = np.nan  # observed channels' rows: zeros, by their stage's reset
         self.stimulus.reset()
         for s in self.stages:
@@ -236,9 +322,31 @@ class Rig:
 
     def apply_schedule(self, k: int) -> None:
         """Hand the parameter changes due at block ``k`` to the block function (it applies them,
-        ramped across that block, before anything else in the block). Engine thread only."""
+        ramped across that block, before anything else in the block): the stimulus' and the
+        scene's events. Engine thread only."""
         self.stimulus.apply(k)
+        for ev in self._events_at.get(k, ()):
+            self._apply_event(ev)
         self.queue.publish()
+
+    def _apply_event(self, ev) -> None:
+        """An event's writes: the device's (a simulated finger's load) and new tone targets
+        (the controllers', and the trace's target line)."""
+        for arr, row, col, value in self.device.event_posts(ev):
+            self.queue.post(self.queue.target_id(arr), row, col, value)
+        for key, value in ev.sets.items():
+            if not (key.startswith("stimulus.tones.") and key.endswith(".target_um")):
+                continue
+            n = int(key.split(".")[2])
+            tone, bank = self.tones[n], self.stimulus.bank_index[n]
+            self.targets_um[tone.channel] = value
+            for b in bank:
+                hit = self.controlled.get(b) if self.controllers else None
+                if hit is not None:
+                    from ..control._kernels import TARGET
+
+                    ctl, j = hit
+                    self.queue.post(self.queue.target_id(ctl.target), TARGET, j, value * 1e-6 / len(bank))
 
     def kernel_calls(self) -> list:
         """The block function as ``[(kernel, args)]``, for a callback backend's compiled callback."""

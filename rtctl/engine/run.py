@@ -55,7 +55,8 @@ class _Progress:
             self._bar.close()
 
 
-def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress: bool = False) -> RunResult:
+def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress: bool = False,
+        report: bool = True) -> RunResult:
     """Build the rig for ``scene`` and run it for ``timing.duration``.
 
     Parameters
@@ -67,13 +68,27 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     realtime : bool
         Pace blocks to the wall clock and count deadline misses; otherwise run as fast as
         possible and report the real-time factor.
-    """
-    from .rig import build
-    from ..trace import TraceReader, TraceWriter
+    report : bool
+        The per-channel rows (and plot.png) from the trace; a caller that reads the trace itself
+        (the calibration's excitation) leaves them out.
 
+    With ``control.calibrate = "auto"`` the calibration's measurement and fit run first
+    (:func:`rtctl.engine.calibrate.auto`, written to ``out_dir/calibration.json``), and the rig is
+    built on it.
+    """
+    from ..trace import TraceReader, TraceWriter
+    from .rig import build
+
+    calibrated = None
+    if scene.control.calibrate == "auto":
+        from .calibrate import auto
+
+        scene, calibrated = auto(scene, out_dir, run, say=_stderr if progress else None)
     t_build = time.perf_counter()
     rig = build(scene)
     build_s = time.perf_counter() - t_build
+    if calibrated is not None and out_dir is None:  # auto's temporary file: the rig has read it
+        Path(scene.control.calibration).unlink(missing_ok=True)
     fs, block = rig.fs, rig.block
     n_blocks = max(1, math.ceil(scene.timing.duration * fs / block))
     out = Path(out_dir) if out_dir is not None else None
@@ -83,7 +98,8 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         _remove_earlier_run(out)
         writer = TraceWriter(out / "trace", rig.trace_signals(), fs, block, rig.channel_names,
                              meta={"scene": scene.to_dict(), "source": scene.source,
-                                   "overrides": list(scene.overrides), "sensed_rows": rig.sensed_names})
+                                   "overrides": list(scene.overrides), "sensed_rows": rig.sensed_names,
+                                   "latency_blocks": scene.io.latency_blocks or int(rig.device.latency_blocks)})
     times = np.zeros(n_blocks)
     faults: list[str] = []
     bar = _Progress(n_blocks, progress)
@@ -124,21 +140,33 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         "block_function": rig.compose_note,
         "numba_cache": _numba.CACHE_NOTE or "stamped with the package",
         "interrupted": interrupted,
+        # the scene's events, at the block they took effect in
+        "events": [{"at": ev.at, "t_s": ev.block * period, "block": ev.block, "set": dict(ev.sets)}
+                   for ev in rig.events if ev.block < run_blocks],
         "channels": [],
     }
+    if rig.calibration is not None:
+        from .calibrate import summary_of
+
+        summary["calibration"] = summary_of(rig.calibration, calibrated)
     if dev is not None and hasattr(dev, "stats"):
         summary["io"] = dev.stats()
     if out is not None:
         from .report import channel_rows
 
         reader = TraceReader(out / "trace")
-        summary["channels"] = channel_rows(rig, reader, run_blocks)
+        if report:
+            summary["channels"] = channel_rows(rig, reader, run_blocks)
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
-        if plot and run_blocks:
+        if plot and report and run_blocks:
             from .report import plot as make_plot
 
             make_plot(summary, reader, out / "plot.png", run_blocks)
     return RunResult(summary, interrupted, out)
+
+
+def _stderr(text: str) -> None:
+    print(f"rtctl: {text}", file=sys.stderr)
 
 
 #: The files a run writes into its ``out_dir`` besides ``trace/`` (which TraceWriter replaces).

@@ -9,8 +9,9 @@ compiles its kernel. docs/engine.md walks through the observer stage as the work
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 
 @dataclass

@@ -39,10 +39,9 @@ import time
 import numpy as np
 
 from ..errors import DeviceError
+from ..safety import DEVICE_LOST, IO_XRUN
 from . import _audio_kernels as K
 from .base import Backend, Snapshots, channel_map  # noqa: F401 - channel_map is part of this module's API
-
-from ..safety import DEVICE_LOST, IO_XRUN
 
 #: JACK client name of the stream (PortAudio keeps the pointer: this object must live).
 CLIENT_NAME = ctypes.create_string_buffer(b"rtctl")
@@ -149,7 +148,7 @@ def find_device(devices, hostapis, name: str, host_api: str = "") -> int:
     return hits[0]
 
 
-def open_backend(scene, layout, out, sensed) -> "AudioBackend":
+def open_backend(scene, layout, out, sensed) -> AudioBackend:
     """Open the scene's audio device for the rig's buffers (the stream is created, not started).
 
     Parameters
@@ -574,7 +573,8 @@ class AudioBackend(Backend):
                     "were live: nothing feeds them any more (the sense chain unplugged; under JACK, the "
                     "plant's client gone)")
         if why == K.GUARD_XRUNS:
-            return f"more than {n_xruns} xruns within {window_s:g} s ({int(sum(self.ctl[K.IN_UNDER:K.OUT_OVER + 1]))} in all)"
+            n_all = int(sum(self.ctl[K.IN_UNDER:K.OUT_OVER + 1]))
+            return f"more than {n_xruns} xruns within {window_s:g} s ({n_all} in all)"
         return None
 
     def close(self) -> None:

@@ -170,6 +170,16 @@ class Backend:
         :meth:`read` and :meth:`write` (a device simulated in the block function), or None."""
         return None
 
+    def event_targets(self) -> list:
+        """Arrays (2-D float64) the scene's ``[[events]]`` write on this device (a simulated
+        finger's load, say); the engine hands them to its parameter queue. A real device has
+        none: its finger moves by itself."""
+        return []
+
+    def event_posts(self, event) -> list:
+        """``[(array, row, col, value)]`` to write at ``event.block`` (one of :meth:`event_targets`)."""
+        return []
+
     def read(self) -> int:
         return 0
 

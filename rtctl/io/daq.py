@@ -34,7 +34,9 @@ def driver_problem() -> str:
         return ("io.backend = 'daq' needs the nidaqmx package and NI's NI-DAQmx driver; nidaqmx is not "
                 "installed (pip install 'rtctl[daq]')")
     try:
-        nidaqmx.system.System.local().driver_version
+        # not a useless expression: reading the property queries the driver, which raises when
+        # NI-DAQmx is not installed; the version itself is not needed
+        _ = nidaqmx.system.System.local().driver_version
     except Exception as e:  # nidaqmx.errors.DaqNotFoundError and friends: no driver
         return f"io.backend = 'daq': the NI-DAQmx driver is not available ({type(e).__name__}: {e})"
     return ""
@@ -71,13 +73,15 @@ class DaqBackend(Backend):
             self.ao = nidaqmx.Task()
             self.ai = nidaqmx.Task() if layout.n_sensed else None
             for c in self.o_map:
-                self.ao.ao_channels.add_ao_voltage_chan(f"{io.device}/ao{c}", min_val=-FULL_SCALE_V, max_val=FULL_SCALE_V)
+                self.ao.ao_channels.add_ao_voltage_chan(f"{io.device}/ao{c}",
+                                                        min_val=-FULL_SCALE_V, max_val=FULL_SCALE_V)
             self.ao.timing.cfg_samp_clk_timing(layout.fs, sample_mode=AcquisitionType.CONTINUOUS, samps_per_chan=buf)
             self.ao.out_stream.regen_mode = RegenerationMode.DONT_ALLOW_REGENERATION
             self.writer = AnalogMultiChannelWriter(self.ao.out_stream)
             if self.ai is not None:
                 for c in self.i_map:
-                    self.ai.ai_channels.add_ai_voltage_chan(f"{io.device}/ai{c}", min_val=-FULL_SCALE_V, max_val=FULL_SCALE_V)
+                    self.ai.ai_channels.add_ai_voltage_chan(f"{io.device}/ai{c}",
+                                                            min_val=-FULL_SCALE_V, max_val=FULL_SCALE_V)
                 self.ai.timing.cfg_samp_clk_timing(layout.fs, source=f"/{io.device}/ao/SampleClock",
                                                    sample_mode=AcquisitionType.CONTINUOUS, samps_per_chan=buf)
                 self.reader = AnalogMultiChannelReader(self.ai.in_stream)

@@ -1,7 +1,7 @@
 """The binary pin-frame protocol of the serial pin controllers (Dot 4x4, SMA 8x8).
 
 Pure Python and numpy; it knows no port. The host (:mod:`rtctl.io.serial`) and the device
-emulator (:mod:`rtctl.io.emulate_serial`) both speak it. Specification: docs/backends/serial.md.
+emulator (:mod:`rtctl.emulate.serial`) both speak it. Specification: docs/backends/serial.md.
 
 On the wire every message is one **frame**::
 

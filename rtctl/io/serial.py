@@ -106,7 +106,7 @@ def _write_fd(fd: int, data: bytes) -> int:
         return 0
 
 
-def open_backend(scene, layout, out: np.ndarray, sensed: np.ndarray) -> "SerialBackend":
+def open_backend(scene, layout, out: np.ndarray, sensed: np.ndarray) -> SerialBackend:
     """Open ``io.port``, identify the device with HELLO and return the backend.
 
     Parameters

@@ -11,8 +11,8 @@ register them). :mod:`.problems` re-exports every name here.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import scipy.integrate
@@ -321,7 +321,7 @@ def _state_scale(pilot: Problem) -> np.ndarray:
     breaks = np.append(pilot.breaks, pilot.t_end)
     y, peak = pilot.y0.copy(), np.abs(pilot.y0)
     for seg in range(breaks.size - 1):
-        sol = scipy.integrate.solve_ivp(lambda t, yy: pilot.rhs(t, yy, pilot.input(t, seg)),
+        sol = scipy.integrate.solve_ivp(lambda t, yy, seg=seg: pilot.rhs(t, yy, pilot.input(t, seg)),
                                         (breaks[seg], breaks[seg + 1]), y, method="Radau",
                                         rtol=1e-6, atol=1e-12 * max(1.0, float(np.max(peak))))
         peak = np.maximum(peak, np.max(np.abs(sol.y), axis=1))
@@ -347,8 +347,7 @@ def default_bimorph_plant(finger_branches=((300.0, 0.004), (150.0, 0.07), (80.0,
     -------
     BimorphPlant
     """
-    from rtctl.plant import (BUILTIN, Amplifier, BeamSpec, BimorphPlant, CurrentSense, Layer,
-                             MaxwellLoad, build_fe)
+    from rtctl.plant import BUILTIN, Amplifier, BeamSpec, BimorphPlant, CurrentSense, Layer, MaxwellLoad, build_fe
     pzt = BUILTIN["PZT-5A"]
     fe = build_fe(BeamSpec(15e-3, 1.5e-3, (Layer(pzt, 0.3e-3), Layer(pzt, 0.3e-3)),
                            "parallel", (0.5, 0.5), damping))

@@ -24,7 +24,7 @@ def plot_work_precision(entries, path, target: float = 1e-6) -> None:
     for ax, plant in zip(axes[0], plants):
         es = [e for e in entries if e.plant == plant and e.error is not None]
         for method in dict.fromkeys(e.method for e in es):
-            pts = sorted(((e.wall_s, max(e.error, 1e-17)) for e in es if e.method == method))
+            pts = sorted((e.wall_s, max(e.error, 1e-17)) for e in es if e.method == method)
             ours = any(e.ours for e in es if e.method == method)
             ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-" if ours else "s--",
                       lw=2 if ours else 1, ms=5, label=method)

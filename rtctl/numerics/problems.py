@@ -37,9 +37,18 @@ import numpy as np
 import scipy.signal
 
 from rtctl.errors import ModelError
-from rtctl.numerics.base import (PROBLEMS, TRUTH_ROWS, Problem, Setting, default_bimorph_plant,
-                                 group_problem, integrate, register, relative_error,
-                                 skin_contact_model)
+from rtctl.numerics.base import (
+    PROBLEMS,
+    TRUTH_ROWS,
+    Problem,
+    Setting,
+    default_bimorph_plant,
+    group_problem,
+    integrate,
+    register,
+    relative_error,
+    skin_contact_model,
+)
 from rtctl.plant.lti import StateSpace, augment_tones, c2d, tone_state
 
 __all__ = ["Problem", "Setting", "PROBLEMS", "register", "build", "bimorph_problem",

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import scipy.integrate
@@ -241,9 +241,9 @@ def near_defective(quick: bool = False) -> list:
         y = np.empty((1, 3, n))
         status = run.process(np.ones((1, n)), y)
         k = _checkpoints(n)
-        ref = scipy.integrate.solve_ivp(lambda t, x: A @ x + B[:, 0], (0.0, k[-1] / FS),
+        ref = scipy.integrate.solve_ivp(lambda t, x, A=A, B=B: A @ x + B[:, 0], (0.0, k[-1] / FS),
                                         np.zeros(3), method="Radau", t_eval=k / FS,
-                                        rtol=1e-13, atol=1e-22, jac=lambda t, x: A).y
+                                        rtol=1e-13, atol=1e-22, jac=lambda t, x, A=A: A).y
         err = _row_rel_error(y[0][:, k], C @ ref)
         ok = not refused and run.modal.form == "dense" and err <= 1e-9 and status == 0
         out.append(Case(f"near_defective_{label}", ok,
@@ -270,7 +270,7 @@ def subnormal_decay(quick: bool = False) -> list:
         drive = np.zeros((1, piece))
         drive[0, :48] = FULL_SCALE_V
         times, subnormal, status = [], 0, 0
-        for i in range(n_pieces):
+        for _ in range(n_pieces):
             t0 = time.perf_counter()
             status |= g.process(drive, sensed, truth)
             times.append(time.perf_counter() - t0)

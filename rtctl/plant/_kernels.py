@@ -194,8 +194,14 @@ def _tile3x8_add(plan, coef, k, X, ys, L):
     c20, c21, c22, c23 = coef[k, 2, 0], coef[k, 2, 1], coef[k, 2, 2], coef[k, 2, 3]
     c24, c25, c26, c27 = coef[k, 2, 4], coef[k, 2, 5], coef[k, 2, 6], coef[k, 2, 7]
     for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
-        v4 = X[s4, i]; v5 = X[s5, i]; v6 = X[s6, i]; v7 = X[s7, i]
+        v0 = X[s0, i]
+        v1 = X[s1, i]
+        v2 = X[s2, i]
+        v3 = X[s3, i]
+        v4 = X[s4, i]
+        v5 = X[s5, i]
+        v6 = X[s6, i]
+        v7 = X[s7, i]
         y0[i] += ((c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3)
                   + (c04 * v4 + c05 * v5 + c06 * v6 + c07 * v7))
         y1[i] += ((c10 * v0 + c11 * v1 + c12 * v2 + c13 * v3)
@@ -215,7 +221,10 @@ def _tile3x4_add(plan, coef, k, X, ys, L):
     c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
     c20, c21, c22, c23 = coef[k, 2, 0], coef[k, 2, 1], coef[k, 2, 2], coef[k, 2, 3]
     for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
+        v0 = X[s0, i]
+        v1 = X[s1, i]
+        v2 = X[s2, i]
+        v3 = X[s3, i]
         y0[i] += c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3
         y1[i] += c10 * v0 + c11 * v1 + c12 * v2 + c13 * v3
         y2[i] += c20 * v0 + c21 * v1 + c22 * v2 + c23 * v3
@@ -233,8 +242,14 @@ def _tile2x8_add(plan, coef, k, X, ys, L):
     c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
     c14, c15, c16, c17 = coef[k, 1, 4], coef[k, 1, 5], coef[k, 1, 6], coef[k, 1, 7]
     for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
-        v4 = X[s4, i]; v5 = X[s5, i]; v6 = X[s6, i]; v7 = X[s7, i]
+        v0 = X[s0, i]
+        v1 = X[s1, i]
+        v2 = X[s2, i]
+        v3 = X[s3, i]
+        v4 = X[s4, i]
+        v5 = X[s5, i]
+        v6 = X[s6, i]
+        v7 = X[s7, i]
         y0[i] += ((c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3)
                   + (c04 * v4 + c05 * v5 + c06 * v6 + c07 * v7))
         y1[i] += ((c10 * v0 + c11 * v1 + c12 * v2 + c13 * v3)
@@ -250,7 +265,10 @@ def _tile2x4_add(plan, coef, k, X, ys, L):
     c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
     c10, c11, c12, c13 = coef[k, 1, 0], coef[k, 1, 1], coef[k, 1, 2], coef[k, 1, 3]
     for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
+        v0 = X[s0, i]
+        v1 = X[s1, i]
+        v2 = X[s2, i]
+        v3 = X[s3, i]
         y0[i] += c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3
         y1[i] += c10 * v0 + c11 * v1 + c12 * v2 + c13 * v3
 
@@ -264,8 +282,14 @@ def _tile1x8_add(plan, coef, k, X, ys, L):
     c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
     c04, c05, c06, c07 = coef[k, 0, 4], coef[k, 0, 5], coef[k, 0, 6], coef[k, 0, 7]
     for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
-        v4 = X[s4, i]; v5 = X[s5, i]; v6 = X[s6, i]; v7 = X[s7, i]
+        v0 = X[s0, i]
+        v1 = X[s1, i]
+        v2 = X[s2, i]
+        v3 = X[s3, i]
+        v4 = X[s4, i]
+        v5 = X[s5, i]
+        v6 = X[s6, i]
+        v7 = X[s7, i]
         y0[i] += ((c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3)
                   + (c04 * v4 + c05 * v5 + c06 * v6 + c07 * v7))
 
@@ -277,7 +301,10 @@ def _tile1x4_add(plan, coef, k, X, ys, L):
     s0, s1, s2, s3 = plan[k, 5], plan[k, 6], plan[k, 7], plan[k, 8]
     c00, c01, c02, c03 = coef[k, 0, 0], coef[k, 0, 1], coef[k, 0, 2], coef[k, 0, 3]
     for i in range(L):
-        v0 = X[s0, i]; v1 = X[s1, i]; v2 = X[s2, i]; v3 = X[s3, i]
+        v0 = X[s0, i]
+        v1 = X[s1, i]
+        v2 = X[s2, i]
+        v3 = X[s3, i]
         y0[i] += c00 * v0 + c01 * v1 + c02 * v2 + c03 * v3
 
 
@@ -673,7 +700,7 @@ def output_plan(c, slack=0.25):
         rest = cols[len(cols) - len(cols) % 8:]
         if rest or not tiles:
             tiles.append(rest if rest else [0])
-        for t, tc in enumerate(tiles):
+        for tc in tiles:
             w = 8 if len(tc) > 4 else 4 if (len(tc) > 1 or nr > 1) else 1
             rows = g + [g[0]] * (3 - nr)
             plan.append([nr, *rows, w, *(tc + [tc[0]] * (8 - len(tc)))])

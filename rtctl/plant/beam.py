@@ -29,10 +29,12 @@ way (layers above the neutral axis are poled opposite to those below, for either
   floating equipotential electrodes (a conductive shim, or bonded electrodes) between them that
   carry no net charge. For two identical layers this is ``V_i = V / 2``; in general (unequal
   layers, or three or more: their moments per volt differ with the distance from the neutral
-  axis, e.g. 0.324/0.324/0.351 for three identical layers) the division follows from charge balance: ``f = C_l^-1 1 / (1^T C_l^-1 1)`` (the capacitive
-  divider), and keeping the floating electrodes' charge balanced costs an extra rotational
-  stiffness between the segment's end slopes (``Section.electrical_stiffness``, zero only when
-  every layer's moment per volt is the same, e.g. two identical layers). This is the exact static condensation of the floating electrodes.
+  axis, e.g. 0.324/0.324/0.351 for three identical layers) the division follows from charge
+  balance: ``f = C_l^-1 1 / (1^T C_l^-1 1)`` (the capacitive divider), and keeping the floating
+  electrodes' charge balanced costs an extra rotational stiffness between the segment's end
+  slopes (``Section.electrical_stiffness``, zero only when every layer's moment per volt is the
+  same, e.g. two identical layers). This is the exact static condensation of the floating
+  electrodes.
 
 Here ``C_l = diag(c_i) + n n^T / EA`` is the per-length capacitance of the layers with the beam
 held in bending but free to stretch, ``c_i = eps33S_i w / t_i``. The axial stretch is condensed

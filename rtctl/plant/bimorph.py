@@ -43,7 +43,7 @@ from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.frontend import Amplifier, CurrentSense
 from rtctl.plant.lti import StateSpace, c2d, to_modal
 
-__all__ = ["BimorphPlant", "SimGroup", "TRUTH_NAMES", "sim_group_process"]
+__all__ = ["BimorphPlant", "SimGroup", "TRUTH_NAMES", "sim_group_process", "realization"]
 
 TRUTH_NAMES = ("tip_m", "tip_velocity_m_s", "tip_force_n", "voltage_v")
 
@@ -195,6 +195,11 @@ class BimorphPlant:
         self.n_seg = n_seg
         self.modes_hz = f_all[keep].copy()
         self.residual_tip_per_volt = r_tip
+        # What a load switch needs to carry the beam's state into another load's modes
+        # (rtctl.plant.switching): the full finite-element shapes and static correction, and the
+        # loaded mass matrix they are orthonormal in.
+        self.mode_shapes, self.static_correction, self.mass_matrix = phi, r, loaded.M
+        self.n_modes, self.n_branches, self.tip = nr, nb, tip
         self.capacitance_feedthrough = cap.copy()  # Cp + Theta^T r: current per dV/dt, F
         # Subsystems in signal order; nothing feeds back upstream (block lower-triangular A).
         self.cascade = ((i_V,), tuple(range(i_V)),
@@ -213,6 +218,43 @@ class BimorphPlant:
             Columns in ``OUTPUT_NAMES`` order (m/V, m/s/V, N/V, V/V, A/V, A/V).
         """
         return self.sys.frequency_response(freqs_hz)[:, :, 0]
+
+
+def realization(plant: BimorphPlant, fs: float, form: str = "auto", max_cond: float = 1e8):
+    """The discrete recursion a :class:`SimGroup` runs for ``plant`` at ``fs``.
+
+    The truth rows and the anti-aliased currents, discretized exactly for a DAC staircase, in
+    modal form per subsystem of ``plant.cascade`` with unit input gains where that is safe, else
+    dense.
+
+    Returns
+    -------
+    sysd : StateSpace
+        The discrete plant (plant coordinates, selected outputs).
+    modal : ModalForm
+        The realization that runs, ``x = modal.T z``.
+    code : int
+        ``FORM_MODAL`` or ``FORM_DENSE`` (the kernel's switch).
+    a, reals : ndarray
+        The kernel's state coefficients: ``(n_pairs, 2)`` blocks and the real modes, or the dense
+        ``(n_states, n_states)`` matrix and an empty ``reals``.
+    """
+    n_seg = plant.n_seg
+    rows = list(range(len(TRUTH_NAMES))) + [4 + n_seg + j for j in range(n_seg)]
+    s = plant.sys
+    sel = StateSpace(s.A, s.B, s.C[rows], s.D[rows])
+    sysd = c2d(sel, 1.0 / fs, "zoh")
+    modal = to_modal(sysd, max_cond=max_cond, form=form, blocks=plant.cascade)
+    if modal.form == "modal":
+        modal = modal.unit_input()
+    ms = modal.sys
+    if modal.form == "modal":
+        a, reals = modal.blocks()
+        code = _kernels.FORM_MODAL
+    else:
+        a, reals = np.ascontiguousarray(ms.A), np.zeros(0)
+        code = _kernels.FORM_DENSE
+    return sysd, modal, code, a, reals
 
 
 class SimGroup:
@@ -301,22 +343,10 @@ class SimGroup:
         self.probe_names = ()
         self.probe = np.zeros((0, int(max_block)))
         self.capacitance = float(plant.fe.capacitance())
-        rows = list(range(len(TRUTH_NAMES))) + [4 + n_seg + j for j in range(n_seg)]
-        s = plant.sys
-        sel = StateSpace(s.A, s.B, s.C[rows], s.D[rows])
-        self.sysd = c2d(sel, 1.0 / fs, "zoh")
-        self.modal = to_modal(self.sysd, max_cond=max_cond, form=form, blocks=plant.cascade)
-        if self.modal.form == "modal":
-            self.modal = self.modal.unit_input()
+        self.sysd, self.modal, code, a, reals = realization(plant, fs, form, max_cond)
         ms = self.modal.sys
         self.n_states = ms.n_states
-        if self.modal.form == "modal":
-            a, reals = self.modal.blocks()
-            code = _kernels.FORM_MODAL
-        else:
-            a, reals = np.ascontiguousarray(ms.A), np.zeros(0)
-            code = _kernels.FORM_DENSE
-        n_out = len(rows)
+        n_out = ms.n_outputs
         plan, coef = _kernels.output_plan(ms.C)
         mb, ch = int(max_block), int(chunk)
         lo, hi = sense.code_range
@@ -385,4 +415,4 @@ class SimGroup:
             if arr.shape != shape or arr.dtype != np.float64 or not arr.flags.c_contiguous:
                 raise ModelError(f"{name} must be C-contiguous float64 of shape {shape}, got "
                                  f"{arr.dtype} {arr.shape}")
-        return sim_group_process(*self.args, drive, sensed, truth)
+        return self.kernel(*self.args, drive, sensed, truth)

@@ -29,7 +29,6 @@ Truth rows (:data:`TRUTH_NAMES`): pin height (m), pin velocity (m/s), contact fo
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from rtctl.errors import ModelError

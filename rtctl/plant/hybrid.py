@@ -79,17 +79,17 @@ class Lin:
         self.terms = {k: float(v) for k, v in (terms or {}).items()}
 
     @classmethod
-    def x(cls, i: int, coef: float = 1.0) -> "Lin":
+    def x(cls, i: int, coef: float = 1.0) -> Lin:
         """``coef * x_i``."""
         return cls({("x", int(i)): coef})
 
     @classmethod
-    def u(cls, j: int, coef: float = 1.0) -> "Lin":
+    def u(cls, j: int, coef: float = 1.0) -> Lin:
         """``coef * u_j``."""
         return cls({("u", int(j)): coef})
 
     @classmethod
-    def const(cls, c: float) -> "Lin":
+    def const(cls, c: float) -> Lin:
         return cls({_ONE: c})
 
     def __add__(self, other):
@@ -201,7 +201,7 @@ class HybridBuilder:
             raise ModelError(f"output row {row} does not exist; add it with output() first")
         self._out.append((int(row), form, tuple(int(w) for w in when)))
 
-    def build(self) -> "HybridModel":
+    def build(self) -> HybridModel:
         n, m, s = len(self.state_names), len(self.input_names), len(self._switches)
         if n == 0:
             raise ModelError("a hybrid model needs at least one state")

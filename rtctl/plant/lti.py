@@ -56,16 +56,16 @@ class StateSpace:
 
     Notes
     -----
-    The arrays are copied and made read-only. ``dynamics`` and ``output`` follow python-control's
-    ``(t, x, u)`` convention so that ``scipy.integrate.solve_ivp`` can run the same model as a
-    reference: ``solve_ivp(lambda t, x: sys.dynamics(t, x, u(t)), ...)``.
+    The arrays are copied and made read-only. ``rhs(t, x, u)`` and ``outputs(x, u)`` are the names
+    every plant model in :mod:`rtctl.plant` uses, so that ``scipy.integrate.solve_ivp`` can run any
+    of them as a reference: ``solve_ivp(lambda t, x: sys.rhs(t, x, u(t)), ...)``.
 
     Examples
     --------
     >>> import numpy as np
     >>> from rtctl.plant.lti import StateSpace
     >>> lowpass = StateSpace([[-10.0]], [[10.0]], [[1.0]], [[0.0]])
-    >>> lowpass.dynamics(0.0, np.array([0.5]), np.array([1.0]))
+    >>> lowpass.rhs(0.0, np.array([0.5]), np.array([1.0]))
     array([5.])
     >>> float(abs(lowpass.frequency_response([0.0])[0, 0, 0]))
     1.0
@@ -122,7 +122,7 @@ class StateSpace:
     def is_discrete(self) -> bool:
         return self.dt is not None
 
-    def dynamics(self, t, x, u):
+    def rhs(self, t, x, u):
         """State derivative (continuous) or next state (discrete): ``A x + B u``.
 
         Parameters
@@ -134,8 +134,8 @@ class StateSpace:
         """
         return self.A @ np.asarray(x, dtype=np.float64) + self.B @ np.atleast_1d(u)
 
-    def output(self, t, x, u):
-        """Output ``C x + D u``, shape (n_outputs,)."""
+    def outputs(self, x, u):
+        """Outputs ``C x + D u``, shape (n_outputs,)."""
         return self.C @ np.asarray(x, dtype=np.float64) + self.D @ np.atleast_1d(u)
 
     def frequency_response(self, freqs_hz):
@@ -400,7 +400,7 @@ class ModalForm:
         if self.state_block is None:
             object.__setattr__(self, "state_block", np.full(self.sys.n_states, -1, dtype=np.int64))
 
-    def unit_input(self) -> "ModalForm":
+    def unit_input(self) -> ModalForm:
         """The same realization with each mode scaled so that the input enters with gain 1.
 
         A pair's basis can be multiplied by any complex number without changing its block

@@ -37,8 +37,8 @@ import math
 import numpy as np
 
 from rtctl.errors import ModelError
-from rtctl.plant._checks import positive
 from rtctl.plant import _pvdf_kernels as _k
+from rtctl.plant._checks import positive
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.lti import StateSpace, c2d, to_modal
 from rtctl.plant.materials import EPS0
@@ -331,9 +331,9 @@ class PvdfPlate:
         # so a DAC staircase does not kick it. Its frequency matches the w^2 term of the
         # truncated modes' response at the cell centres (sum r_k / w_k^4 = R0 / w_r^2, traces);
         # it is never below the lowest truncated mode.
-        f_low = min((math.pi * ((i / a) ** 2 + (j / b) ** 2) * c_plate / 2
+        f_low = min(math.pi * ((i / a) ** 2 + (j / b) ** 2) * c_plate / 2
                      for i in range(1, int(mn[:, 0].max()) + 2)
-                     for j in range(1, int(mn[:, 1].max()) + 2) if (i, j) not in kept_set))
+                     for j in range(1, int(mn[:, 1].max()) + 2) if (i, j) not in kept_set)
         r0 = float(np.trace(Rd[:n_cells]))
         w_r = math.sqrt(r0 / r4) if (residual and r4 * r0 > 0) else 2 * math.pi * f_low
         self.residual_omega = max(w_r, 2 * math.pi * f_low)
@@ -577,7 +577,7 @@ class PvdfGroup:
             zi[b] = [blk[0], blk[1] if nz == 2 else n_z]
             vr_cols.append((p0, rank, blk, Vr))
         n_p = len(q_rows)
-        for b, (p0, rank, blk, Vr) in enumerate(vr_cols):
+        for b, (p0, rank, _blk, _Vr) in enumerate(vr_cols):
             pi[b] = [p0 if rank > 0 else n_p, p0 + 1 if rank == 2 else n_p]
         Q = np.array(q_rows).reshape(n_p, nc)
         # Output rows over e = [z, g]; acceleration = d/dt(velocity) = c (Lam z + Vr g).

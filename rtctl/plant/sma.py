@@ -27,8 +27,8 @@ import math
 import numpy as np
 
 from rtctl.errors import ModelError
-from rtctl.plant._checks import positive
 from rtctl.plant import _sma_kernels as _k
+from rtctl.plant._checks import positive
 
 __all__ = ["SmaTaxel", "SmaGroup", "sma_group_process", "TRUTH_NAMES"]
 

@@ -45,8 +45,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from rtctl.errors import ModelError
 from rtctl.plant._checks import positive
 from rtctl.plant.contact import PinReference, SkinContact, add_skin

@@ -47,6 +47,7 @@ digits).
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -376,6 +377,20 @@ class TMMBeam:
         """Same beam on another support (its modes, hence its damping, tabulated anew)."""
         return TMMBeam(self.lam, self.length, np.diff(self.bounds) / self.length, self.zeta,
                        support)
+
+    def with_damping(self, zeta) -> TMMBeam:
+        """Same beam with modal damping ratio ``zeta``. The tabulated modes and their port
+        participations are the undamped beam's, so they are shared, not solved anew (the
+        natural frequencies are most of the cost of building a beam)."""
+        z = float(zeta)
+        if not (0.0 <= z < 1.0):
+            raise ModelError(f"zeta must be in [0, 1), got {zeta!r}")
+        if self.c_kv == 0.0:  # no modes tabulated yet
+            return TMMBeam(self.lam, self.length, np.diff(self.bounds) / self.length, z, self.support)
+        out = copy.copy(self)
+        out.zeta = z
+        out.c_kv = 2.0 * z / self._wn[0] if z > 0.0 else 0.0
+        return out
 
     def support_stiffness(self, omega, c=None):
         """Dynamic root stiffnesses at ``omega``: springs damped like the beam (the FE plant's
@@ -729,7 +744,7 @@ class TMMBeam:
         out = []
         for f0 in start:
             w0 = 2.0 * math.pi * f0
-            g = lambda p: self._char(p * w0, lf)  # noqa: E731
+            g = lambda p, w0=w0: self._char(p * w0, lf)  # noqa: E731
             z = min(0.9, self._c(w0) * w0 / 2.0)  # damping ratio of this mode
             p0 = complex(-z, math.sqrt(1.0 - z * z))
             try:

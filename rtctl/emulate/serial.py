@@ -45,7 +45,7 @@ import tty
 import numpy as np
 
 from ..errors import RtctlError
-from . import protocol as P
+from ..io import protocol as P
 
 FIRMWARE = (1, 0)
 #: SMA pin states: up above +this height, down below -this (m): half the unpowered raised and
@@ -102,7 +102,7 @@ class Firmware:
 
     def __init__(self, scene, fs: float = 8000.0, chunk_s: float = 1e-3, pulse_s: float = 3e-3,
                  settle_s: float = 0.05):
-        from .serial import pin_group
+        from ..io.serial import pin_group
 
         g = pin_group(scene, "rtctl emulate serial")
         self.display, self.name = g.type, g.name
@@ -110,20 +110,19 @@ class Firmware:
         self.fs = float(fs)
         self.B = max(1, int(round(chunk_s * self.fs)))
         if self.display == "dot":
-            from ..models import Models
-            from .sim import build_group
+            from ..io.sim import build_group, device_models
 
-            self.group = build_group(Models(scene), g, 0, self.fs, self.B)
+            self.group = build_group(device_models(scene), g, 0, self.fs, self.B)
             self.volts = float(g.dot.supply)
             self.travel = float(g.dot.travel)
         else:
-            from ..models import Models
+            from ..io.sim import device_models
             from ..plant.sma import SmaGroup
 
             p = g.sma
             rows = g.grid[0]
-            self.group = SmaGroup(Models(scene).sma(g), self.fs, n, max_block=self.B, mech_fs=min(p.mech_fs, self.fs),
-                                  crossbar=True, rows=rows, slot=p.slot)
+            self.group = SmaGroup(device_models(scene).sma(g), self.fs, n, max_block=self.B,
+                                  mech_fs=min(p.mech_fs, self.fs), crossbar=True, rows=rows, slot=p.slot)
             self.group.f_ext[:] = p.push
             self.volts = float(g.max_voltage) * math.sqrt(rows)
         self.pulse_n = max(1, int(round(pulse_s * self.fs)))

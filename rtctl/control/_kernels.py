@@ -1,0 +1,142 @@
+"""The amplitude controller's block kernel (see :class:`rtctl.control.AmplitudeController`)."""
+
+import math
+
+from .._numba import kernel
+from ..dsp._kernels import P_AMP, P_FLAG, P_RAMP
+from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
+
+# state rows, one column per controlled tone
+(CMD,     # commanded amplitude, V peak (what the oscillator ramps to)
+ FF,      # feedforward gain of the model, V per m of tip amplitude
+ AMAX,    # the tone's share of the channel's max_voltage, V
+ GAIN,    # correction exponent (1: the whole ratio r / y at once)
+ WAIT,    # blocks left before the estimate answers the latest command
+ WARM,    # blocks from a command to an estimate that holds nothing older (latency + window + 1)
+ ON,      # 1 while the tone plays under control
+ TPREV,   # the target the command was last set for, m
+ SAT,     # 1: saturated at AMAX with the target out of reach
+ FROZEN,  # 1: the last estimate was unusable; the command is held
+ EST,     # the last estimate used, m
+ LIMSEEN,  # the channel's limiter count when last seen (float copy)
+ GHAT,    # tip per volt the last fresh estimate showed, m/V (0: none yet)
+ PREV,    # the previous fresh estimate of the present command, m (0: none yet)
+ TRIES,   # fresh estimates of the present command that disagreed with the one before
+ RING,    # blocks the plant rings after a new command (its slowest loaded mode's time constant)
+ ) = range(16)
+N_STATE = 16
+
+# target rows (written through the engine's parameter queue)
+TARGET, ENABLE = 0, 1
+N_TARGET = 2
+
+# index rows
+OBS_CH, OBS_SLOT, BANK, CHANNEL = 0, 1, 2, 3
+N_INDEX = 4
+
+#: largest factor one correction may change a command by (a wild estimate moves the drive by at
+#: most this)
+MAX_STEP = 2.0
+#: two fresh estimates of one command agreeing within this say the plant has settled on it (the
+#: switch-on transient of a lightly damped beam under a finger beats by several % for tens of ms:
+#: correcting on it would chase the transient)
+AGREE = 0.02
+#: fresh estimates that may disagree before a correction is made anyway, at half strength
+PATIENCE = 4
+#: an error larger than this is no transient to wait out (the finger pressed, lifted): corrected
+#: at once, in full
+BIG = 0.1
+
+
+@kernel
+def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
+    """Set the next block's amplitude of every controlled tone; returns status bits.
+
+    Parameters
+    ----------
+    est : ndarray, shape (n_ch, n_slots, N_EST, 2)
+        The observer's latest estimates (row 0: tip deflection phasor, m).
+    index : ndarray int64, shape (N_INDEX, n)
+        Per controlled tone: the observer channel and slot of its estimate, its oscillator in the
+        bank, its drive channel (the limiter's column).
+    target : ndarray, shape (N_TARGET, n)
+        Target tip amplitude (m) and enable flag per tone.
+    state : ndarray, shape (N_STATE, n)
+    pending : ndarray, shape (N_PEND, n_bank_tones)
+        The oscillator bank's pending parameters (written: amplitude, ramp, flag).
+    lim_counts : ndarray int64, shape (3, n_channels)
+        The limiter's per-channel counts of limited samples.
+    ramp : float
+        Samples each amplitude change ramps over (one block).
+    """
+    status = 0
+    n = state.shape[1]
+    for i in range(n):
+        b = index[BANK, i]
+        if target[ENABLE, i] == 0.0:
+            if state[ON, i] != 0.0:  # switched off: ramp to silence
+                state[ON, i] = 0.0
+                state[CMD, i] = 0.0
+                pending[P_AMP, b] = 0.0
+                pending[P_RAMP, b] = ramp
+                pending[P_FLAG, b] = 1.0
+            continue
+        r = target[TARGET, i]
+        ch = index[CHANNEL, i]
+        lim = float(lim_counts[0, ch] + lim_counts[1, ch] + lim_counts[2, ch])
+        limited = lim != state[LIMSEEN, i]
+        state[LIMSEEN, i] = lim
+        a = state[CMD, i]
+        if state[ON, i] == 0.0 or r != state[TPREV, i]:
+            # a start or a target step: the drive for the new target from the tip per volt the
+            # last fresh estimate showed (what feedback learned), else from the model's
+            if state[GHAT, i] > 0.0:
+                a = r / state[GHAT, i]
+            else:
+                a = r * state[FF, i]
+            state[ON, i] = 1.0
+            state[TPREV, i] = r
+            state[WAIT, i] = state[WARM, i] + state[RING, i]  # let the switch-on transient ring down
+            state[PREV, i] = 0.0
+            state[TRIES, i] = 0.0
+        elif state[WAIT, i] > 0.0:
+            state[WAIT, i] -= 1.0
+            continue
+        else:
+            c, j = index[OBS_CH, i], index[OBS_SLOT, i]
+            y = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
+            state[EST, i] = y
+            if not (y > 0.0 and y < math.inf and r > 0.0):
+                state[FROZEN, i] = 1.0  # hold the drive: never raise it on a bad estimate
+                status |= CONTROL_FROZEN
+                continue
+            state[FROZEN, i] = 0.0
+            state[GHAT, i] = y / a  # the estimate holds nothing but the present command a
+            prev = state[PREV, i]
+            state[PREV, i] = y
+            settled = (prev > 0.0 and abs(y / prev - 1.0) <= AGREE) or abs(r / y - 1.0) > BIG
+            if not settled and state[TRIES, i] < PATIENCE:
+                state[TRIES, i] += 1.0
+                state[WAIT, i] = state[WARM, i]  # another estimate of the same command first
+                continue
+            g = state[GAIN, i] if settled else 0.5 * state[GAIN, i]
+            state[PREV, i] = 0.0
+            state[TRIES, i] = 0.0
+            step = (r / y) ** g
+            step = min(max(step, 1.0 / MAX_STEP), MAX_STEP)
+            if limited and step > 1.0:
+                step = 1.0  # the limiter holds this channel: no windup
+            a = a * step
+            state[WAIT, i] = state[WARM, i]  # judge this command only once the estimate is all of it
+        if a >= state[AMAX, i]:
+            a = state[AMAX, i]
+            state[SAT, i] = 1.0 if (state[EST, i] < r or state[WAIT, i] > 0.0) else 0.0
+        else:
+            state[SAT, i] = 0.0
+        if state[SAT, i] != 0.0:
+            status |= CONTROL_SATURATED
+        state[CMD, i] = a
+        pending[P_AMP, b] = a
+        pending[P_RAMP, b] = ramp
+        pending[P_FLAG, b] = 1.0
+    return status

@@ -1,0 +1,132 @@
+"""Per-tone amplitude control from the self-sensing observer's estimates.
+
+The plant, at a steady tone, is a gain: tip amplitude ``y = G a`` for drive amplitude ``a``, with
+``G`` unknown to within the model's error and the finger's changes. The observer sees it through
+its lock-in window (``M`` blocks: whole periods of the channel's tones) ``L`` blocks late (the I/O
+latency), so an estimate holds nothing but the present command ``W = L + M + 1`` blocks after a
+change (one block more for the oscillator's ramp). The controller therefore works in sampled
+steps, per controlled tone:
+
+* at the start and at every target step: ``a = r / G``, with ``G`` the tip per volt the last fresh
+  estimate showed (what feedback learned, saturated or not), or the model's ``|G_model|`` before
+  the first estimate; then wait ``W`` blocks and the time constant of the plant's slowest loaded
+  mode (the switch-on transient rings that long: a beam under a finger, 31 ms for the line
+  display);
+* then fresh estimates of that command, ``W + 1`` blocks apart, until two agree within 2 % (the
+  switch-on transient of a beam under a finger beats by several percent for tens of milliseconds:
+  correcting on it would chase it), or four have disagreed (then correct at half strength); an
+  error beyond 10 % is no transient (the finger pressed, lifted) and is corrected at once;
+* correct: ``a <- a * (r / y) ** g``, and back to the previous step.
+
+With ``g = 1`` this is deadbeat for a static plant: one correction removes a model error (each
+step bounded to a factor of two, so a wild estimate cannot run away), the next confirms it, and
+feedback never crosses the target (the feedforward alone is off by the model's error: calibrate
+the model to keep that small); a drifting or changing plant (the finger relaxing, pressing
+harder) is followed step by step. The design, done at build time, is the wait ``W`` from the
+tone's window and the latency (:func:`design`) and the ring time from the model.
+
+Saturation: the command never exceeds the tone's share of ``max_voltage`` (the state *is* the
+command, so there is nothing to wind up) and does not grow while the limiter holds the channel
+(slew, current, thermal, DC bounds). A non-finite or zero estimate holds the command and raises
+``CONTROL_FROZEN``: the drive is never raised on a bad estimate. Recovery after a saturation or an
+event is one correction step once the target is reachable.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._kernels import (
+    AMAX,
+    BANK,
+    CHANNEL,
+    ENABLE,
+    FF,
+    GAIN,
+    N_INDEX,
+    N_STATE,
+    N_TARGET,
+    OBS_CH,
+    OBS_SLOT,
+    RING,
+    TARGET,
+    WARM,
+)
+
+
+def design(latency: int, window: int) -> tuple[float, int]:
+    """The correction exponent and the wait, in blocks, between a command and an estimate that
+    holds nothing older: ``L + M + 1``.
+
+    >>> design(1, 6)
+    (1.0, 8)
+    """
+    return 1.0, max(0, int(latency)) + max(1, int(window)) + 1
+
+
+class AmplitudeController:
+    """Amplitude control of ``n`` tones (the stage's state; :func:`amplitude_control` runs it).
+
+    Parameters
+    ----------
+    obs_channel, obs_slot : array_like of int, shape (n,)
+        Where each tone's estimate sits in the observer's ``est`` (channel, tone slot).
+    bank_index : array_like of int, shape (n,)
+        Each tone's oscillator in the bank.
+    channel : array_like of int, shape (n,)
+        Each tone's drive channel (the limiter's column).
+    gain_model : array_like, shape (n,)
+        The model's tip amplitude per volt at each tone's frequency under the assumed load, m/V.
+    max_amplitude : array_like, shape (n,)
+        Each tone's share of its channel's max_voltage, V.
+    targets : array_like, shape (n,)
+        Target tip amplitude per tone, m.
+    latency, window : int
+        Blocks from a drive block to the currents answering it; the observer's window in blocks.
+    block : int
+        Samples per block (each amplitude change ramps over one block).
+    ring : int
+        Blocks the plant rings after a start or a target step (its slowest loaded mode's time
+        constant, from the model): the first estimate is taken after the window and this.
+    """
+
+    def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
+                 latency: int, window: int, block: int, ring: int = 0):
+        n = len(bank_index)
+        self.n = n
+        self.index = np.zeros((N_INDEX, n), dtype=np.int64)
+        self.index[OBS_CH], self.index[OBS_SLOT] = obs_channel, obs_slot
+        self.index[BANK], self.index[CHANNEL] = bank_index, channel
+        self.state = np.zeros((N_STATE, n))
+        self.target = np.zeros((N_TARGET, n))
+        g = np.asarray(gain_model, dtype=float)
+        if np.any(~np.isfinite(g)) or np.any(g <= 0):
+            raise ValueError("the model's tip amplitude per volt must be finite and > 0 for every tone")
+        self._ff = 1.0 / g
+        self._amax = np.asarray(max_amplitude, dtype=float)
+        self.targets0 = np.asarray(targets, dtype=float)
+        self.gain, self.warm = design(latency, window)
+        self.ring = max(0, int(ring))
+        self.block = int(block)
+        self.reset()
+
+    @property
+    def args(self) -> dict:
+        """The stage's arguments after the observer's ``est`` and before the bank's pending and the
+        limiter's counts: ``amplitude_control(est, **args..., pending, lim_counts, ramp)``."""
+        return {"index": self.index, "target": self.target, "state": self.state}
+
+    def reset(self) -> None:
+        """Every tone off, targets back to the scene's; nothing commanded yet."""
+        self.state[...] = 0.0
+        self.state[FF] = self._ff
+        self.state[AMAX] = self._amax
+        self.state[GAIN] = self.gain
+        self.state[WARM] = self.warm
+        self.state[RING] = self.ring
+        self.target[TARGET] = self.targets0
+        self.target[ENABLE] = 0.0
+
+    def feedforward(self, i: int) -> float:
+        """The model's drive for tone ``i``'s target, V."""
+        return float(min(self.targets0[i] * self._ff[i], self._amax[i]))

@@ -1,0 +1,274 @@
+"""On-device calibration (`rtctl calibrate`, `control.calibration`, `control.calibrate = "auto"`).
+
+The simulated device is given departures from its model (`io.mismatch`, set here, as a maker's
+tolerances would); the calibration sees the device only through the run's trace. This test plays
+the report's role: it may know the secret and the simulated plant, to judge what was measured.
+
+(a) the currents per volt against the simulated plant's own frequency response; (b) the fit
+recovers the factors; (c) closed loop on a calibration; (d) an unstated thickness error inside the
+reported uncertainty, and the mass anchor; (e) bad files and scenes, one line each; and the exact
+shortcuts the fit relies on, against `identify`.
+"""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from rtctl import scene
+from rtctl.cli import main
+from rtctl.engine import calibrate as K
+from rtctl.engine.rig import build
+from rtctl.engine.run import run
+from rtctl.io.sim import build_group, device_models
+from rtctl.models import Models
+from rtctl.selfsense import calibrate as C
+from rtctl.selfsense.identify import BeamParams, response, sensitivity
+
+SCENE = "line-bimorph-5"
+#: the device of (b) and (c): its factors (the finger's k0 is lifted away during the measurement)
+SECRET = {"d31": 0.9, "E": 1.08, "eps33T": 1.05, "damping": 2.0, "finger_k0": 3.0}
+
+
+def secret(factors):
+    return [f"io.mismatch.{k}={v}" for k, v in factors.items()]
+
+
+@pytest.fixture(scope="module")
+def measured(tmp_path_factory):
+    """One measurement and fit of the SECRET device, and its file."""
+    s = scene.load(SCENE, secret(SECRET))
+    m = K.measure(s, run)
+    doc = K.document(s, m)
+    path = K.write(doc, tmp_path_factory.mktemp("cal") / "calibration.json")
+    return s, m, doc, path
+
+
+def folded(plant, freqs, fs, n_images=40):
+    """What the ADC reads per commanded volt, from the plant's continuous frequency response: the
+    DAC staircase's lines at f + k fs through the zero-order hold, folded back onto f by sampling."""
+    names = plant.OUTPUT_NAMES
+    cols = [names.index(f"sensed{j}_a") for j in range(plant.n_seg)]
+    f = np.asarray(freqs, dtype=float)
+    out = np.zeros((f.size, len(cols)), dtype=complex)
+    for k in range(-n_images, n_images + 1):
+        w = f + k * fs
+        r = plant.frequency_response(np.abs(w))[:, cols]
+        r = np.where(w[:, None] < 0, np.conj(r), r)
+        x = 2j * np.pi * w / fs
+        out += ((1.0 - np.exp(-x)) / x)[:, None] * r
+    return out
+
+
+# --- (a) the measurement ----------------------------------------------------------------------
+
+def test_currents_per_volt_are_the_simulated_plants_own(measured):
+    s, m, _, _ = measured
+    g, p = s.actuator[0], m.groups[0]
+    lifted = K.lifted(s)
+    device = build_group(device_models(lifted), g, 0, m.fs, m.block).plant
+    nominal = build_group(Models(lifted), g, 0, m.fs, m.block).plant
+    got = m.currents[g.name]                                    # (channels, lines, segments)
+    assert got.shape == (5, len(p.lines), 2)
+    # the ADC's noise (and its quantization) over the window: the std of each phasor component,
+    # per commanded volt
+    n = K.WINDOW_S * m.fs
+    lsb = 2.0 * g.sense.full_scale / 2.0 ** g.sense.bits
+    sigma = math.sqrt(g.sense.noise**2 + lsb**2 / 12.0) / g.sense.shunt * math.sqrt(2.0 / n) / p.volts
+    z = np.abs(got - folded(device, p.lines, m.fs)[None]) / sigma
+    z_nominal = np.abs(got - folded(nominal, p.lines, m.fs)[None]) / sigma
+    rel = np.abs(got / folded(device, p.lines, m.fs)[None] - 1.0)
+    print(f"\nmeasured vs the device's response: {z.max():.2f} noise sigmas at most (median {np.median(z):.2f}); "
+          f"relative {rel.max():.2e} at most, median {np.median(rel):.2e}; vs the nominal plant "
+          f"{z_nominal.min():.0f}-{z_nominal.max():.0f} sigmas")
+    assert z.max() < 6.0          # Rayleigh: P(> 6 sigma) = 1.5e-8 per reading, 330 readings
+    assert np.median(z) < 2.0
+    assert z_nominal.min() > 30   # the comparison sees the device differ from its model
+
+
+def test_the_excitation_stays_far_inside_the_limiter(measured):
+    s, m, doc, _ = measured
+    use = doc["groups"]["lateral"]["limits_used"]
+    assert use["max_voltage"]["used"] <= 0.2 * s.actuator[0].max_voltage + 1e-9
+    assert all(u["share"] <= K.DRIVE_SHARE + 1e-12 for u in use.values())
+    assert doc["excitation"]["limiter_acted"] is False
+    ex = doc["excitation"]
+    print(f"\nexcitation {ex['duration_s']:.2f} s (settle {ex['settle_s']:.2f} s), wall {ex['wall_s']:.1f} s, "
+          f"fit {doc['fit_s']:.1f} s")
+    assert ex["duration_s"] < 1.0
+
+
+# --- (b) the fit ----------------------------------------------------------------------------------
+
+def check_factors(doc, truth):
+    got = doc["groups"]["lateral"]["factors"]
+    err = {k: got[k] / truth.get(k, 1.0) - 1.0 for k in C.FIT_NAMES}
+    print(f"\nfit of {truth}: " + ", ".join(f"{k} {100 * e:+.3f} %" for k, e in err.items())
+          + f"; residual {doc['groups']['lateral']['residual_pct']:.3f} %, cond {doc['groups']['lateral']['cond']:.1f}")
+    for k in ("E", "d31", "eps33T"):
+        assert abs(err[k]) < 0.01, k
+    assert abs(err["damping"]) < 0.10
+
+
+def test_fit_recovers_the_devices_factors(measured):
+    check_factors(measured[2], SECRET)
+    g = measured[2]["groups"]["lateral"]
+    assert g["anchor"] is None and "rho" not in g["factors"]
+    assert g["residual_pct"] < 0.1 and 10 < g["cond"] < 100
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("truth", [{"d31": 1.1, "E": 0.9, "eps33T": 0.9, "damping": 0.5},
+                                   {"d31": 1.05, "E": 1.1, "eps33T": 1.1},
+                                   {"d31": 0.92, "E": 0.95, "eps33T": 1.08, "damping": 0.6}])
+def test_fit_recovers_other_devices(truth):
+    check_factors(K.calibrate(scene.load(SCENE, secret(truth)), run), truth)
+
+
+# --- (c) closed loop on the calibration -------------------------------------------------------------
+
+def closed(capsys, tmp, extra):
+    args = ["run", SCENE, "--json", "--no-plot", "--out", str(tmp), "--set", "control.mode=closed"]
+    for item in secret(SECRET) + extra:
+        args += ["--set", item]
+    assert main(args) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_closed_loop_on_a_calibration_holds_the_true_amplitude(measured, capsys, tmp_path):
+    _, _, doc, path = measured
+    before = closed(capsys, tmp_path / "before", [])
+    after = closed(capsys, tmp_path / "after", [f"control.calibration={path}"])
+    assert after["calibration"]["file"] == str(path)
+    rows = []
+    for b, a in zip(before["channels"], after["channels"]):
+        if a.get("controlled") and not a["saturated"]:
+            rows.append((a["name"], a["freq_hz"], b["error_pct"], a["error_pct"]))
+            assert a["uncertainty_pct"] == doc["groups"]["lateral"]["uncertainty_pct"]
+            assert b["uncertainty_pct"] is None
+    print("\nclosed loop, true error against the target (uncalibrated -> calibrated):")
+    for name, f, e0, e1 in rows:
+        print(f"  {name} {f:g} Hz: {e0:+.2f} % -> {e1:+.2f} %")
+    assert [r[1] for r in rows] == [40.0, 120.0, 250.0]     # the 2 and 10 Hz targets are out of reach
+    for _, _, e0, e1 in rows:
+        assert abs(e1) < 2.0
+        assert abs(e0) > 10.0                            # what the calibration removed
+
+
+def test_the_rig_takes_the_factors_and_the_device_stays_itself(measured):
+    _, _, doc, path = measured
+    s = scene.load(SCENE, [f"control.calibration={path}", "timing.duration=0.01"])
+    rig = build(s)
+    assert rig.models.factors == doc["groups"]["lateral"]["factors"]
+    assert rig.calibration.uncertainty_pct("lateral") == doc["groups"]["lateral"]["uncertainty_pct"]
+    g = s.actuator[0]
+    # the rig's beam is the calibrated one; the simulated device is still the scene's own
+    assert rig.models.beam(g).capacitance() != Models(s).beam(g).capacitance()
+    assert rig.device.groups[0][0].capacitance == Models(s).beam(g).capacitance()
+
+
+# --- (d) what the currents cannot see ----------------------------------------------------------------
+
+@pytest.mark.slow
+def test_unstated_thickness_error_is_inside_the_uncertainty_and_the_mass_removes_it(capsys, tmp_path):
+    thick = {"thickness": 1.02}
+    s = scene.load(SCENE, secret(thick))
+    b = s.actuator[0].beam
+    rho = Models(s).materials()["PZT-5A"].rho
+    # the user's scale reading: the device's free length, thickness included
+    mass = b.width * b.length * sum(rho * layer.thickness * thick["thickness"] for layer in b.layers)
+    out = {}
+    for label, extra in (("no mass", []), ("mass", [f"actuator.lateral.beam.mass={mass!r}"])):
+        doc = K.calibrate(scene.load(SCENE, secret(thick) + extra), run)
+        path = K.write(doc, tmp_path / f"{label}.json")
+        args = ["run", SCENE, "--json", "--no-plot", "--out", str(tmp_path / label), "--set", "control.mode=closed",
+                "--set", f"control.calibration={path}"] + [x for e in secret(thick) + extra for x in ("--set", e)]
+        assert main(args) == 0
+        rows = [r for r in json.loads(capsys.readouterr().out)["channels"]
+                if r.get("controlled") and not r["saturated"]]
+        out[label] = (doc["groups"]["lateral"]["uncertainty_pct"], [r["error_pct"] for r in rows])
+    print("\nthickness x1.02, tolerance 0.02: " + "; ".join(
+        f"{k}: uncertainty {u:.2f} %, true errors {', '.join(f'{e:+.2f}' for e in errs)} %"
+        for k, (u, errs) in out.items()))
+    u0, e0 = out["no mass"]
+    u1, e1 = out["mass"]
+    assert len(e0) == len(e1) == 3
+    assert u0 == pytest.approx(100 * 0.02 / 0.98)
+    assert all(abs(e) < u0 for e in e0)
+    # the invisible scale is 1.02^-0.5: -0.99 %, seen in every tone
+    assert all(e < -0.5 for e in e0)
+    assert u1 == pytest.approx(100 * (0.995 ** -0.5 - 1))
+    assert all(abs(e) < 2.0 and abs(e) < 0.5 * abs(e0[i]) for i, e in enumerate(e1))
+
+
+def test_the_uncertainty_is_the_tip_of_the_worst_thickness_and_density():
+    """A device whose thickness and density lie within the tolerance shows the currents of a
+    model at the nominal geometry (its equivalent factors below); the tip of the two differs by
+    at most what scale_uncertainty_pct says, attained at a corner."""
+    s = scene.load(SCENE, ["finger.contact=false"])
+    params = BeamParams.from_fe(Models(s).beam(s.actuator[0]))
+    freqs = [40.0, 250.0, 1000.0]
+    tol, worst = 0.02, 0.0
+    for t in (1 - tol, 1 + tol):
+        for r in (1 - tol, 1 + tol):
+            # thickness t: E t^2, d31 t^-1.5, eps33T t^-1; density r: E / r, d31 r^0.5
+            model = {"E": t**2 / r, "d31": t**-1.5 * r**0.5, "eps33T": 1 / t}
+            i_dev, w_dev = response(params, None, freqs, {"thickness": t, "rho": r})
+            i_mod, w_mod = response(params, None, freqs, model)
+            assert np.max(np.abs(i_dev / i_mod - 1)) < 1e-9
+            worst = max(worst, float(np.max(np.abs(w_dev / w_mod - 1))))
+    assert 100 * worst == pytest.approx(C.scale_uncertainty_pct(tol), rel=1e-6)
+
+
+# --- the fit's shortcuts, against identify -----------------------------------------------------------
+
+def test_the_fits_model_is_identifys_response():
+    s = scene.load(SCENE)
+    params = BeamParams.from_fe(Models(s).beam(s.actuator[0]))
+    f = C.lines(params.beam().natural_frequencies(1)[0], 2.0)
+    model = C.Currents(params)
+    for fac in ({"E": 1.1}, {"d31": 0.9, "E": 0.92, "eps33T": 1.07, "damping": 2.0}, {"damping": 0.5, "E": 1.08}):
+        assert np.max(np.abs(model(f, fac) / response(params, None, f, fac)[0] - 1)) < 1e-11
+    fac = {"d31": 0.9, "E": 1.08, "eps33T": 1.05, "damping": 2.0}
+    cond, sv = model.cond(f, fac)
+    ref = sensitivity(params.scaled(fac), None, f, C.FIT_NAMES)
+    assert cond == pytest.approx(ref.cond, rel=1e-6)
+    np.testing.assert_allclose(sv, ref.singular_values, rtol=1e-6)
+
+
+# --- (e) bad inputs: one line each --------------------------------------------------------------------
+
+def refused(capsys, args):
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("rtctl: error: "), err
+    return err[0]
+
+
+def test_bad_calibration_files_are_refused_in_one_line(measured, capsys, tmp_path):
+    doc = json.loads(measured[3].read_text())
+    run_with = ["run", SCENE, "--duration", "0.01", "--no-plot", "--out", str(tmp_path / "out"), "--set"]
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({**doc, "scene": "bimodal-4x4"}))
+    assert "a calibration of scene 'bimodal-4x4', not of 'line-bimorph-5'" in refused(
+        capsys, run_with + [f"control.calibration={other}"])
+    assert "no such file" in refused(capsys, run_with + [f"control.calibration={tmp_path / 'missing.json'}"])
+    corrupt = tmp_path / "corrupt.json"
+    corrupt.write_text('{"format": "rtctl-calibration-1", "scene": ')
+    assert "not a calibration file" in refused(capsys, run_with + [f"control.calibration={corrupt}"])
+    unknown = tmp_path / "unknown.json"
+    unknown.write_text(json.dumps({**doc, "groups": {"normal": doc["groups"]["lateral"]}}))
+    assert "group 'normal' is no bimorph group" in refused(capsys, run_with + [f"control.calibration={unknown}"])
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({**doc, "groups": {"lateral": {**doc["groups"]["lateral"], "factors": {"E": -1}}}}))
+    assert "not finite and > 0" in refused(capsys, run_with + [f"control.calibration={bad}"])
+    assert "no bimorph group" in refused(capsys, ["calibrate", "solenoid-3x3"])
+
+
+def test_a_relative_path_is_found_beside_the_scene_file(measured, tmp_path):
+    s = tmp_path / "s.toml"
+    s.write_text(scene.resolve(SCENE).read_text().replace('mode = "open"', 'mode = "open"\ncalibration = "cal.json"'))
+    (tmp_path / "cal.json").write_text(measured[3].read_text())
+    cal = K.scene_calibration(scene.load(s))
+    assert cal.factors == measured[2]["groups"]["lateral"]["factors"]

@@ -1,0 +1,293 @@
+"""``rtctl emulate audio``'s connection logic against a fake JACK client whose port table changes
+between any two of its calls: the ports of a run go away (JACK removes a closing client's ports
+one by one) at every point of the emulator's main loop, in several orders. The run's end must be
+the emulator's normal end - never an exception out of ``Emulator.serve`` (the ``rtctl`` command
+turns one into "internal error", exit 3), never an error line - and the emulator must connect
+to the next run. No JACK server: every interleaving is tried, none is left to timing.
+"""
+
+from __future__ import annotations
+
+import errno
+import re
+from types import SimpleNamespace
+
+import pytest
+from optional import require
+
+require("jack")  # JACK-Client's exceptions (the emulator catches jack.JackError)
+
+import jack  # noqa: E402
+
+from rtctl.emulate import audio as ea  # noqa: E402
+
+RUN = "rtctl"
+RUN_PORTS = [f"{RUN}:out_{i}" for i in range(3)] + [f"{RUN}:in_{i}" for i in range(3)]
+WATCH = f"{RUN}:out_0"  # the first drive source: the port the emulator watches for the run's end
+SYSTEM = ["system:capture_1", "system:capture_2", "system:playback_1"]
+
+
+class Port:
+    def __init__(self, name, is_output):
+        self.name, self.is_output = name, is_output
+
+
+class Register:
+    def __init__(self, server, is_output):
+        self.server, self.is_output = server, is_output
+
+    def register(self, short):
+        return self.server.add(f"{self.server.name}:{short}", self.is_output)
+
+
+class FakeClient:
+    """The emulator's JACK client on a server whose ports change between any two calls.
+
+    Each call is a step; ``schedule(step)`` may change the port table before the step runs.
+    Lookups behave as JACK-Client's: ``get_ports`` and ``get_all_connections`` list names, then
+    look each one up with ``get_port_by_name`` (``JackError('Port ... not available')`` for one
+    gone meanwhile); ``connect``/``disconnect`` take names (a port given is used by its name).
+    """
+
+    name = "rtctl-emulator"
+    blocksize = 64
+
+    def __init__(self, schedule=None, uuids=True):
+        self.has_uuids = uuids  # False: a server that cannot tell client UUIDs (it errs)
+        self.ports: dict[str, Port] = {}
+        self.links: set[tuple[str, str]] = set()
+        self.steps = 0
+        self.schedule = schedule or (lambda client, step: None)
+        self.on_port = None
+        self.emu = None
+        self.refuse: set[tuple[str, str]] = set()  # connections the server refuses (a real error)
+        self.run_uuid, self.uuids = None, 0
+        self.inports, self.outports = Register(self, False), Register(self, True)
+        for s in SYSTEM:
+            self.add(s, "capture" in s)
+
+    # --- the server side, for the test -----------------------------------------------------------
+    def add(self, name, is_output):
+        self.ports[name] = Port(name, is_output)
+        if self.on_port:
+            self.on_port(self.ports[name], True)
+        return self.ports[name]
+
+    def remove(self, name):
+        if self.ports.pop(name, None) is not None:
+            self.links = {lk for lk in self.links if name not in lk}
+            if self.on_port:
+                self.on_port(None, False)
+
+    def start_run(self):
+        """A run's PortAudio client: a new UUID, its ports, its inputs auto-connected to system
+        capture. The client is there as long as one of its ports is (JACK removes a closing
+        client's ports, then the client)."""
+        self.uuids += 1
+        self.run_uuid = str(self.uuids)
+        for n in RUN_PORTS:
+            self.add(n, ":out_" in n)
+        self.links |= {("system:capture_1", f"{RUN}:in_0"), ("system:capture_2", f"{RUN}:in_1")}
+
+    def _step(self):
+        self.steps += 1
+        self.schedule(self, self.steps)
+        if self.steps > 5000:  # a loop that never ends is a failure too
+            self.emu.stop.set()
+            raise AssertionError("the emulator's loop did not settle")
+
+    # --- JACK-Client's API, as the emulator uses it ----------------------------------------------
+    def set_process_callback(self, cb):
+        pass
+
+    def set_xrun_callback(self, cb):
+        pass
+
+    def set_shutdown_callback(self, cb):
+        pass
+
+    def set_port_registration_callback(self, cb=None, only_available=True):
+        self.on_port = cb
+
+    def get_port_by_name(self, name):
+        self._step()
+        if name not in self.ports:
+            raise jack.JackError(f"Port {name!r} not available")
+        return self.ports[name]
+
+    def get_uuid_for_client_name(self, name):
+        self._step()
+        if name != RUN or not any(n in self.ports for n in RUN_PORTS) or not self.has_uuids:
+            raise jack.JackError(f"Unable to get session ID for {name!r}")
+        return self.run_uuid
+
+    def get_ports(self, name_pattern="", is_audio=False, is_midi=False, is_input=False, is_output=False, **_):
+        self._step()
+        names = [n for n, p in self.ports.items() if re.search(name_pattern, n)
+                 and (not is_output or p.is_output) and (not is_input or not p.is_output)]
+        return [self.get_port_by_name(n) for n in names]
+
+    def get_all_connections(self, port):
+        self._step()
+        port = self.get_port_by_name(port) if isinstance(port, str) else port
+        if port is None or port.name not in self.ports:
+            return []
+        names = [a if b == port.name else b for a, b in sorted(self.links) if port.name in (a, b)]
+        return [self.get_port_by_name(n) for n in names]
+
+    def connect(self, source, destination):
+        self._step()
+        s, d = getattr(source, "name", source), getattr(destination, "name", destination)
+        if s not in self.ports or d not in self.ports or (s, d) in self.refuse:
+            raise jack.JackErrorCode(f"Error connecting {s!r} -> {d!r}", -1)
+        if (s, d) in self.links:
+            raise jack.JackErrorCode(f"Connection {s!r} -> {d!r} already exists", errno.EEXIST)
+        self.links.add((s, d))
+
+    def disconnect(self, source, destination):
+        self._step()
+        s, d = getattr(source, "name", source), getattr(destination, "name", destination)
+        if (s, d) not in self.links:
+            raise jack.JackErrorCode(f"Couldn't disconnect {s!r} -> {d!r}", -1)
+        self.links.discard((s, d))
+
+
+class Now:
+    """An event that is always set: the loop never sleeps (every iteration is client steps)."""
+
+    def wait(self, timeout=None):
+        return True
+
+    def set(self):
+        pass
+
+    def clear(self):
+        pass
+
+    def is_set(self):
+        return True
+
+
+PLANT = SimpleNamespace(in_names=["a.0", "a.1"], out_names=["a.0.i", "a.1.i"], outputs=[0, 1], inputs=[0, 1],
+                        reset=lambda: None)
+WIRED = {(f"{RUN}:out_0", "rtctl-emulator:a.0"), (f"{RUN}:out_1", "rtctl-emulator:a.1"),
+         ("rtctl-emulator:a.0.i", f"{RUN}:in_0"), ("rtctl-emulator:a.1.i", f"{RUN}:in_1")}
+
+
+def emulator(client, monkeypatch):
+    monkeypatch.setenv("RTCTL_AUDIO_CFUNC", "0")  # the Python process callback: no libjack needed
+    monkeypatch.setattr(ea, "_clock", lambda: client.steps * 0.01)  # each call takes 10 ms
+    emu = ea.Emulator(client, PLANT, "rtctl(-[0-9]+)?")
+    emu.wake = Now()
+    client.emu = emu
+    return emu
+
+
+def serve(client, emu, capsys):
+    code = emu.serve()
+    out, err = capsys.readouterr()
+    return code, out.split(), err
+
+
+def test_the_fake_server_connects_undisturbed(monkeypatch, capsys):
+    """The baseline: a run appears, the emulator wires it (and unwires system capture) once."""
+    ready_at = []
+
+    def schedule(c, step):
+        if step == 1:
+            c.start_run()
+        if c.links >= WIRED and not ready_at:
+            ready_at.append(step)
+        if ready_at and step > ready_at[0] + 20:
+            c.emu.stop.set()
+
+    client = FakeClient(schedule)
+    emu = emulator(client, monkeypatch)
+    code, out, err = serve(client, emu, capsys)
+    assert code == 0 and out == ["waiting", "ready"] and err == ""
+    assert {lk for lk in client.links if RUN in lk[0] or RUN in lk[1]} == WIRED
+    assert 10 < ready_at[0] < 60
+
+
+ORDERS = {
+    "forward": RUN_PORTS,
+    "reverse": RUN_PORTS[::-1],
+    "watched last": [n for n in RUN_PORTS if n != WATCH] + [WATCH],
+    "inputs first": RUN_PORTS[3:] + RUN_PORTS[:3],
+}
+
+
+def vanish_schedule(start, order, per_step, comeback):
+    """The run starts at step 1; from step ``start`` on its ports go, ``per_step`` per step in
+    ``order`` (all at once for 0); with ``comeback`` a new run of the same name starts 3 steps
+    after the last one went. The loop stops 60 steps after the last change."""
+    state = {"gone": None, "back": None, "done": None}
+
+    def schedule(c, step):
+        if step == 1:
+            c.start_run()
+        if step >= start and state["gone"] is None:
+            left = [n for n in order if n in c.ports]
+            for n in left[: per_step or len(left)]:
+                c.remove(n)
+            if not any(n in c.ports for n in RUN_PORTS):
+                state["gone"] = step
+        if comeback and state["gone"] is not None and state["back"] is None and step >= state["gone"] + 3:
+            c.start_run()
+            state["back"] = step
+        last = state["back"] if comeback else state["gone"]
+        if last is not None and step > last + 60:
+            c.emu.stop.set()
+
+    return schedule
+
+
+@pytest.mark.parametrize("uuids", [True, False], ids=["client UUIDs", "no UUIDs"])
+@pytest.mark.parametrize("comeback", [False, True], ids=["run ends", "next run"])
+@pytest.mark.parametrize("per_step", [1, 0], ids=["one port per call", "all at once"])
+@pytest.mark.parametrize("order", list(ORDERS))
+def test_a_run_ending_at_any_call_is_the_emulators_normal_end(order, per_step, comeback, uuids, monkeypatch, capsys):
+    """Ports vanish from before each of the emulator's calls on (its discovery, the connection,
+    the watch of the connected run): serve never raises, says nothing on stderr, connects to
+    the next run, and exits 0. Without client UUIDs (a server that does not tell them) the
+    emulator knows runs by their ports alone: a new run of the same name that comes while the
+    emulator wires the last one may then stay part-wired, and only the old run's end counts."""
+    failures = []
+    for start in range(1, 70):
+        client = FakeClient(vanish_schedule(start, ORDERS[order], per_step, comeback), uuids=uuids)
+        emu = emulator(client, monkeypatch)
+        try:
+            code, out, err = serve(client, emu, capsys)
+        except Exception as e:  # noqa: BLE001 - collected: the first few failing interleavings are shown
+            failures.append(f"start {start}: {type(e).__name__}: {e}")
+            capsys.readouterr()
+            continue
+        if code != 0 or err or out[:1] != ["waiting"] or set(out[1:]) - {"ready"}:
+            failures.append(f"start {start}: exit {code}, stdout {out}, stderr {err!r}")
+        elif comeback and uuids and (out[-1] != "ready" or not client.links >= WIRED
+                           or ("system:capture_1", f"{RUN}:in_0") in client.links):
+            failures.append(f"start {start}: the next run was not wired: stdout {out}, links {sorted(client.links)}")
+    assert not failures, f"{len(failures)} of 69 interleavings failed:\n" + "\n".join(failures[:5])
+
+
+@pytest.mark.parametrize("refused_steps, lines", [(100, 0), (600, 1)], ids=["a moment", "over 2 s"])
+def test_a_refused_connection_is_retried_and_reported_once_if_it_lasts(refused_steps, lines, monkeypatch, capsys):
+    """The server refuses a connection while every port is there (as JACK does while their
+    client is not active yet): retried, and once it lasts over 2 s one line on stderr (not one
+    per retry), never an exception; once the server accepts it, the emulator connects."""
+    def schedule(c, step):
+        if step == 1:
+            c.start_run()
+            c.refuse.add((f"{RUN}:out_1", "rtctl-emulator:a.1"))
+        if step == refused_steps:
+            c.refuse.clear()
+        if step == refused_steps + 200:
+            c.emu.stop.set()
+
+    client = FakeClient(schedule)
+    emu = emulator(client, monkeypatch)
+    code, out, err = serve(client, emu, capsys)
+    assert code == 0 and out == ["waiting", "ready"], (out, err)
+    said = err.splitlines()
+    assert len(said) == lines and all("connecting to rtctl failed (Error connecting" in x for x in said), err
+    assert client.links >= WIRED
