@@ -297,16 +297,20 @@ def test_callback_allocates_no_arrays_and_compiles_nothing():
     assert [len(k.signatures) for k in (K.frames_to_rows, K.rows_to_frames)] == sigs
     be._snapshot = lambda snaps, slot: None  # the tiny rig's step allocates; time only the backend
     be._step = lambda: 0
+    # tracemalloc counts every thread's allocations (a daemon thread left by an earlier test, the
+    # garbage collector): the callback's own would show in every repetition, so take the least
+    peaks = []
     tracemalloc.start()
     try:
-        base = tracemalloc.get_traced_memory()[0]
-        tracemalloc.reset_peak()
-        for _ in range(200):
-            be._callback(ind, outd, BLOCK, None, flags)
-        peak = tracemalloc.get_traced_memory()[1] - base
+        for _ in range(5):
+            base = tracemalloc.get_traced_memory()[0]
+            tracemalloc.reset_peak()
+            for _ in range(200):
+                be._callback(ind, outd, BLOCK, None, flags)
+            peaks.append(tracemalloc.get_traced_memory()[1] - base)
     finally:
         tracemalloc.stop()
-    assert peak < 400, peak  # a few Python ints; one block of float64 would be 1 KiB
+    assert min(peaks) < 400, peaks  # a few Python ints; one block of float64 would be 1 KiB
 
 
 def test_failing_step_fades_then_aborts_without_raising_into_portaudio():

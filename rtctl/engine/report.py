@@ -145,7 +145,8 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             elif main.shape == "sine":
                 st = settle_time(tip, t, freqs, min(tn.start for tn in tones), amp)
                 row["settle_ms"] = None if st is None else 1e3 * st
-        _estimate(row, reader, ch, n_b, block / fs, freqs, target_m)
+        since = max((ev.block for ev in rig.events), default=0)  # the last segment of the run
+        _estimate(row, reader, ch, n_b, block / fs, freqs, target_m, since)
         _felt(row, contact)
         rows.append(row)
     _control(rig, rows)
@@ -207,7 +208,7 @@ def _felt(row, contact: bool) -> None:
         row["felt"] = row["true_um"] >= row["threshold_um"]
 
 
-def _estimate(row, reader, ch, n_blocks, period, freqs, target_m) -> None:
+def _estimate(row, reader, ch, n_blocks, period, freqs, target_m, since: int = 0) -> None:
     """The observer's amplitude (median of its per-block estimate over the analysis window)
     into ``row``, with its error against the truth where a simulation knows it and, on
     hardware, the error against the target from the estimate."""
@@ -215,6 +216,8 @@ def _estimate(row, reader, ch, n_blocks, period, freqs, target_m) -> None:
         return
     est = reader.signal("estimated_um", ch)[:n_blocks]
     m = max(1, int(round(analysis_window(n_blocks * period, freqs) / period)))
+    if since:  # after an event: only the last segment's second half (what it settled to)
+        m = max(1, min(m, (n_blocks - since) // 2))
     seg = est[-m:]
     seg = seg[np.isfinite(seg)]
     if not seg.size:
