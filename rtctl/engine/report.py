@@ -321,12 +321,12 @@ def _amplitude_panel(ax, r, reader, ch, t, n, has_tip) -> None:
         ax.plot(tb, tgt, color="k", lw=0.7, drawstyle="steps-post")
     if has_tip and r.get("freqs_hz"):
         tc, amp = amplitude_track(t, reader.signal("tip_um", ch)[:n], r["freqs_hz"])
-        ax.plot(tc, amp, color="C1", lw=0.9, label="true")
+        ax.plot(tc, amp, color="C1", lw=1.3, label="true", zorder=3)
     if "estimated_um" in reader.units:
         est = reader.signal("estimated_um", ch)[: n // reader.block]
         te = np.arange(est.size) * reader.block / reader.fs
         est = np.where(te >= r.get("observer_window_s", 0.0), est, np.nan)  # a window not yet full
-        ax.plot(te, est, color="C2", lw=0.7, label="estimated")
+        ax.plot(te, est, color="C2", lw=0.6, alpha=0.7, label="estimated")
     if r.get("threshold_um") is not None:
         ax.axhline(r["threshold_um"], ls="--", color="k", lw=0.6, label="threshold")
     ax.set_ylabel("amplitude um")
