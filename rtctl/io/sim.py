@@ -311,13 +311,7 @@ class SimDevice(Backend):
         """Advance every simulated group by the block now in ``drive`` (volts)."""
         status = 0
         for group_kernel, args in self._calls:
-            s = group_kernel(*args)
-            if s & _ADC_SATURATED:
-                status |= SENSOR_SATURATED
-            if s & _NONFINITE:
-                status |= PLANT_NONFINITE
-            if s & _OVERTEMP:
-                status |= OVERTEMP
+            status |= group_status(group_kernel(*args))
         return status
 
     def stats(self) -> dict:
