@@ -4,26 +4,31 @@ import math
 
 from rtctl.control._kernels import (
     AGREE,
+    ALL,
     AMAX,
     BANK,
-    BIG,
     CHANNEL,
     CMD,
+    DEADBAND,
     ENABLE,
     EST,
     FF,
     FROZEN,
     GAIN,
     GHAT,
+    HOLD,
     LIMSEEN,
     MAX_STEP,
+    NALL,
     OBS_CH,
     OBS_SLOT,
     ON,
     PATIENCE,
-    PREV,
+    REF,
     RING,
+    RUN,
     SAT,
+    SUM,
     TARGET,
     TPREV,
     TRIES,
@@ -51,7 +56,8 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
         starting = not col[ON]
         if starting or r != col[TPREV]:
             a = r / col[GHAT] if col[GHAT] > 0 else r * col[FF]
-            col[ON], col[TPREV], col[WAIT], col[PREV], col[TRIES] = 1.0, r, col[WARM] + col[RING], 0.0, 0.0
+            col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM] + col[RING]
+            col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
         elif col[WAIT] > 0:
             col[WAIT] -= 1
             continue
@@ -61,22 +67,37 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
             col[EST] = y
             if not (0 < y < math.inf and r > 0):
                 col[FROZEN] = 1.0
+                col[REF] = col[SUM] = col[RUN] = col[ALL] = col[NALL] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             col[FROZEN] = 0.0
             col[GHAT] = y / a
-            prev, col[PREV] = col[PREV], y
-            settled = (prev > 0 and abs(y / prev - 1) <= AGREE) or abs(r / y - 1) > BIG
-            if not settled and col[TRIES] < PATIENCE:
-                col[TRIES] += 1
-                col[WAIT] = col[WARM]
+            col[TRIES] += 1
+            col[SUM] += y
+            col[RUN] += 1
+            col[ALL] += y
+            col[NALL] += 1
+            if col[RUN] < col[HOLD]:
                 continue
-            g = col[GAIN] if settled else 0.5 * col[GAIN]
-            col[PREV] = col[TRIES] = 0.0
-            step = min(max((r / y) ** g, 1 / MAX_STEP), MAX_STEP)
+            mean, prev = col[SUM] / col[RUN], col[REF]
+            col[REF], col[SUM], col[RUN] = mean, 0.0, 0.0
+            if prev > 0 and abs(mean / prev - 1) <= AGREE:
+                if abs(r / mean - 1) <= AGREE:
+                    mean = col[ALL] / col[NALL]
+                g = col[GAIN]
+            elif col[TRIES] >= PATIENCE * (col[WARM] + 2 * col[HOLD]):
+                g = 0.5 * col[GAIN]
+            else:
+                continue
+            step = (r / mean) ** g
+            if abs(step - 1) <= DEADBAND:
+                col[TRIES] = 0.0
+                continue
+            step = min(max(step, 1 / MAX_STEP), MAX_STEP)
             if limited and step > 1:
                 step = 1.0
             a *= step
+            col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
             col[WAIT] = col[WARM]
         if a >= col[AMAX]:
             a = col[AMAX]

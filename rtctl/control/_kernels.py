@@ -20,11 +20,16 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  EST,     # the last estimate used, m
  LIMSEEN,  # the channel's limiter count when last seen (float copy)
  GHAT,    # tip per volt the last fresh estimate showed, m/V (0: none yet)
- PREV,    # the previous fresh estimate of the present command, m (0: none yet)
- TRIES,   # fresh estimates of the present command that disagreed with the one before
+ REF,     # the mean of the last complete stretch of fresh estimates, m (0: none yet)
+ RUN,     # fresh estimates in the present stretch
  RING,    # blocks the plant rings after a new command (its slowest loaded mode's time constant)
- ) = range(16)
-N_STATE = 16
+ HOLD,    # fresh estimates per stretch
+ SUM,     # sum of the present stretch's estimates, m
+ TRIES,   # fresh estimates since the last correction or the last on-target stretch
+ ALL,     # sum of every fresh estimate of the present command, m
+ NALL,    # how many
+ ) = range(21)
+N_STATE = 21
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -35,17 +40,21 @@ OBS_CH, OBS_SLOT, BANK, CHANNEL = 0, 1, 2, 3
 N_INDEX = 4
 
 #: largest factor one correction may change a command by (a wild estimate moves the drive by at
-#: most this)
-MAX_STEP = 2.0
-#: two fresh estimates of one command agreeing within this say the plant has settled on it (the
-#: switch-on transient of a lightly damped beam under a finger beats by several % for tens of ms:
-#: correcting on it would chase the transient)
-AGREE = 0.02
-#: fresh estimates that may disagree before a correction is made anyway, at half strength
+#: most this; a finger landing on a lifted tip halves its tip per volt, which one step follows)
+MAX_STEP = 4.0
+#: two successive stretches of fresh estimates whose means agree within this say the plant is
+#: steady (a window sliding over a change of the plant moves its estimate for a whole window;
+#: correcting on it would chase it). The loaded beam's ripple after a finger lands or a command
+#: steps (several % for tens of ms) mostly averages out within a stretch; what is left of it
+#: makes a tighter bound wait stretch after stretch for no gain in accuracy: the correction
+#: made on a mean within this is refined by the next one.
+AGREE = 0.05
+#: how many (wait + 2 stretches) may pass without two agreeing stretches before a correction is
+#: made anyway, at half strength (a plant that keeps drifting is still followed)
 PATIENCE = 4
-#: an error larger than this is no transient to wait out (the finger pressed, lifted): corrected
-#: at once, in full
-BIG = 0.1
+#: an error smaller than this is left alone: a correction blinds the loop for a window, and the
+#: loop then answers a change of the plant a window later
+DEADBAND = 0.002
 
 
 @kernel
@@ -97,36 +106,73 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
             state[ON, i] = 1.0
             state[TPREV, i] = r
             state[WAIT, i] = state[WARM, i] + state[RING, i]  # let the switch-on transient ring down
-            state[PREV, i] = 0.0
+            state[REF, i] = 0.0
+            state[SUM, i] = 0.0
+            state[RUN, i] = 0.0
             state[TRIES, i] = 0.0
+            state[ALL, i] = 0.0
+            state[NALL, i] = 0.0
         elif state[WAIT, i] > 0.0:
             state[WAIT, i] -= 1.0
             continue
         else:
+            # every block from here on the estimate holds nothing but the present command: watch
+            # it until it has been steady for HOLD blocks, then correct on the run's mean
             c, j = index[OBS_CH, i], index[OBS_SLOT, i]
             y = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
             state[EST, i] = y
             if not (y > 0.0 and y < math.inf and r > 0.0):
                 state[FROZEN, i] = 1.0  # hold the drive: never raise it on a bad estimate
+                state[REF, i] = 0.0
+                state[SUM, i] = 0.0
+                state[RUN, i] = 0.0
+                state[ALL, i] = 0.0
+                state[NALL, i] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             state[FROZEN, i] = 0.0
-            state[GHAT, i] = y / a  # the estimate holds nothing but the present command a
-            prev = state[PREV, i]
-            state[PREV, i] = y
-            settled = (prev > 0.0 and abs(y / prev - 1.0) <= AGREE) or abs(r / y - 1.0) > BIG
-            if not settled and state[TRIES, i] < PATIENCE:
-                state[TRIES, i] += 1.0
-                state[WAIT, i] = state[WARM, i]  # another estimate of the same command first
+            state[GHAT, i] = y / a
+            state[TRIES, i] += 1.0
+            # steady: the means of two successive stretches of HOLD fresh estimates agree (a
+            # ripple averages out within a stretch, a drift or a window sliding over a change
+            # shows between them)
+            state[SUM, i] += y
+            state[RUN, i] += 1.0
+            state[ALL, i] += y
+            state[NALL, i] += 1.0
+            if state[RUN, i] < state[HOLD, i]:
                 continue
-            g = state[GAIN, i] if settled else 0.5 * state[GAIN, i]
-            state[PREV, i] = 0.0
-            state[TRIES, i] = 0.0
+            m = state[SUM, i] / state[RUN, i]
+            prev = state[REF, i]
+            state[REF, i] = m
+            state[SUM, i] = 0.0
+            state[RUN, i] = 0.0
+            if prev > 0.0 and abs(m / prev - 1.0) <= AGREE:
+                y = m
+                if abs(r / m - 1.0) <= AGREE:
+                    # near the target the steady plant is best seen in the mean of every fresh
+                    # estimate of this command (the last correction's fine tuning)
+                    y = state[ALL, i] / state[NALL, i]
+                g = state[GAIN, i]
+            elif state[TRIES, i] >= PATIENCE * (state[WARM, i] + 2.0 * state[HOLD, i]):
+                y = m
+                g = 0.5 * state[GAIN, i]  # never steady: follow the drift at half strength
+            else:
+                continue
             step = (r / y) ** g
+            if abs(step - 1.0) <= DEADBAND:
+                state[TRIES, i] = 0.0  # on target: keep watching (this stretch compares with the next)
+                continue
             step = min(max(step, 1.0 / MAX_STEP), MAX_STEP)
             if limited and step > 1.0:
                 step = 1.0  # the limiter holds this channel: no windup
             a = a * step
+            state[REF, i] = 0.0
+            state[SUM, i] = 0.0
+            state[RUN, i] = 0.0
+            state[TRIES, i] = 0.0
+            state[ALL, i] = 0.0
+            state[NALL, i] = 0.0
             state[WAIT, i] = state[WARM, i]  # judge this command only once the estimate is all of it
         if a >= state[AMAX, i]:
             a = state[AMAX, i]

@@ -12,18 +12,23 @@ steps, per controlled tone:
   the first estimate; then wait ``W`` blocks and the time constant of the plant's slowest loaded
   mode (the switch-on transient rings that long: a beam under a finger, 31 ms for the line
   display);
-* then fresh estimates of that command, ``W + 1`` blocks apart, until two agree within 2 % (the
-  switch-on transient of a beam under a finger beats by several percent for tens of milliseconds:
-  correcting on it would chase it), or four have disagreed (then correct at half strength); an
-  error beyond 10 % is no transient (the finger pressed, lifted) and is corrected at once;
-* correct: ``a <- a * (r / y) ** g``, and back to the previous step.
+* then watch every fresh estimate (one that holds nothing but the present command) in stretches
+  of ``H`` blocks (:func:`steady_blocks`); once the means of two successive stretches agree within
+  5 % the plant is steady (a window sliding over a change of the plant, the finger pressing or
+  lifting, moves its estimate for a whole window: correcting on it would chase it; the loaded
+  beam's ripple averages out within a stretch); if no two agree for four times (``W`` + 2
+  stretches), correct anyway at half strength;
+* correct on the last stretch's mean ``y``: ``a <- a * (r / y) ** g`` (at most a factor of 4), then
+  wait ``W`` again. An error under 0.2 % is left alone and the watch goes on: a correction blinds
+  the loop for ``W``, so skipping needless ones lets it answer a change of the plant a window
+  sooner (``M + L + 2 H`` blocks after the change, rather than up to ``W`` more).
 
-With ``g = 1`` this is deadbeat for a static plant: one correction removes a model error (each
-step bounded to a factor of two, so a wild estimate cannot run away), the next confirms it, and
-feedback never crosses the target (the feedforward alone is off by the model's error: calibrate
-the model to keep that small); a drifting or changing plant (the finger relaxing, pressing
-harder) is followed step by step. The design, done at build time, is the wait ``W`` from the
-tone's window and the latency (:func:`design`) and the ring time from the model.
+With ``g = 1`` this is deadbeat for a static plant: one correction removes a model error up to a
+factor of four (a wild estimate cannot move the drive by more), and feedback never crosses the
+target (the feedforward alone is off by the model's error: calibrate the model to keep that
+small); a drifting or changing plant (the finger relaxing, pressing harder) is followed step by
+step. The design, done at build time, is the wait ``W`` from the tone's window and the latency
+(:func:`design`), and the stretch ``H`` and the ring time from the model.
 
 Saturation: the command never exceeds the tone's share of ``max_voltage`` (the state *is* the
 command, so there is nothing to wind up) and does not grow while the limiter holds the channel
@@ -43,6 +48,7 @@ from ._kernels import (
     ENABLE,
     FF,
     GAIN,
+    HOLD,
     N_INDEX,
     N_STATE,
     N_TARGET,
@@ -52,6 +58,19 @@ from ._kernels import (
     TARGET,
     WARM,
 )
+
+
+def steady_blocks(window: int, ring: int) -> int:
+    """Fresh estimates per stretch (two successive stretches whose means agree say the plant is
+    steady): at least a quarter window, so that a window sliding over a change of the plant
+    (its estimate moves for a whole window) shows a change of more than 4 ``AGREE`` between two
+    stretches, and an eighth of the ring time, so that the loaded beam's ripple after a finger
+    lands or a command steps averages out within a stretch; at least 2.
+
+    >>> steady_blocks(75, 47), steady_blocks(6, 47), steady_blocks(6, 0)
+    (19, 6, 2)
+    """
+    return max(2, -(-int(window) // 4), -(-int(ring) // 8))
 
 
 def design(latency: int, window: int) -> tuple[float, int]:
@@ -87,7 +106,8 @@ class AmplitudeController:
         Samples per block (each amplitude change ramps over one block).
     ring : int
         Blocks the plant rings after a start or a target step (its slowest loaded mode's time
-        constant, from the model): the first estimate is taken after the window and this.
+        constant, from the model): the first estimate is taken after the window and this; it
+        also sets the stretch (:func:`steady_blocks`).
     """
 
     def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
@@ -107,6 +127,7 @@ class AmplitudeController:
         self.targets0 = np.asarray(targets, dtype=float)
         self.gain, self.warm = design(latency, window)
         self.ring = max(0, int(ring))
+        self.hold = steady_blocks(window, self.ring)
         self.block = int(block)
         self.reset()
 
@@ -124,6 +145,7 @@ class AmplitudeController:
         self.state[GAIN] = self.gain
         self.state[WARM] = self.warm
         self.state[RING] = self.ring
+        self.state[HOLD] = self.hold
         self.target[TARGET] = self.targets0
         self.target[ENABLE] = 0.0
 
