@@ -10,8 +10,10 @@ reported uncertainty, and the mass anchor; (e) bad files and scenes, one line ea
 shortcuts the fit relies on, against `identify`.
 """
 
+import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -21,6 +23,7 @@ from rtctl.cli import main
 from rtctl.engine import calibrate as K
 from rtctl.engine.rig import build
 from rtctl.engine.run import run
+from rtctl.errors import RtctlError
 from rtctl.io.sim import build_group, device_models
 from rtctl.models import Models
 from rtctl.selfsense import calibrate as C
@@ -272,3 +275,25 @@ def test_a_relative_path_is_found_beside_the_scene_file(measured, tmp_path):
     (tmp_path / "cal.json").write_text(measured[3].read_text())
     cal = K.scene_calibration(scene.load(s))
     assert cal.factors == measured[2]["groups"]["lateral"]["factors"]
+
+
+@pytest.mark.parametrize("device", [{}, SECRET])
+def test_a_finger_left_on_the_display_is_refused_not_fitted(device, monkeypatch):
+    """Currents measured with the finger resting (on hardware: a user who did not lift it) fit
+    no free beam: the calibration is refused in one line naming the cause, never written."""
+    monkeypatch.setattr(K, "lifted", lambda s: s)
+    s = scene.load(SCENE, secret(device) if device else [])
+    m = K.measure(s, run)
+    with pytest.raises(RtctlError, match=r"calibration refused: group 'lateral': .*finger on the display"):
+        K.document(s, m)
+
+
+def test_fit_bounds():
+    """Each bound refuses on its own, and a good fit (the figures of a free beam) passes."""
+    good = C.Fit({"E": 1.05, "d31": 0.92, "eps33T": 1.0, "damping": 2.0}, {}, 0.04, (0.04,), 60.0, (), 1)
+    K._check("g", good)
+    for change, words in (({"residual_pct": 1.5}, "residual 1.5 %"), ({"cond": 2e4}, "condition number 2e+04"),
+                          ({"factors": {**good.factors, "d31": 0.3}}, "d31 x0.3"),
+                          ({"factors": {**good.factors, "damping": 3.5}}, "damping x3.5")):
+        with pytest.raises(RtctlError, match=re.escape(words)):
+            K._check("g", dataclasses.replace(good, **change))

@@ -28,7 +28,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import SceneError
+from ..errors import ModelError, RtctlError, SceneError
 
 __all__ = ["Calibration", "FORMAT", "auto", "calibrate", "default_path", "document", "excitation", "lifted",
            "measure", "plan", "read", "scene_calibration", "summary_of", "write"]
@@ -42,6 +42,14 @@ WINDOW_S = 0.5
 DRIVE_SHARE = 0.2
 #: The switch-on transient must decay to this fraction before the window opens.
 SETTLE_DECAY = 1e-5
+#: A fit is refused beyond these: the rms residual of the currents, % (fits of free beams leave
+#: 0.03-0.13 % at 60 dB of current noise; a finger left on the display, 8 %), the condition
+#: number of d log I / d log p (35-112 for a free beam; a finger resting, 1e12), and any factor
+#: farther from 1 than this ratio (a device off its model by more is no tolerance but a wrong
+#: scene: a wrong material, a channel unconnected).
+MAX_RESIDUAL_PCT = 1.0
+MAX_COND = 1e4
+MAX_FACTOR = 3.0
 
 
 @dataclass
@@ -281,7 +289,12 @@ def document(scene, m: Measurement) -> dict:
         # 20 images a side: the rest moves no factor by more than 1e-5 (40 would cost twice the time)
         front = FrontEnd(m.fs, g.amplifier.bandwidth, g.sense.aa_cutoff, g.sense.aa_order, n_images=20)
         cur = m.currents[p.name]
-        r = fit(params, front, p.lines, cur)
+        try:
+            r = fit(params, front, p.lines, cur)
+        except (ModelError, ValueError, ArithmeticError) as e:
+            raise RtctlError(f"calibration refused: group {p.name!r}: the currents fit no free beam of this "
+                             f"scene ({e}){_HINT}") from None
+        _check(p.name, r)
         b = g.beam
         factors, anchor = dict(r.factors), None
         if b.mass > 0:
@@ -331,6 +344,26 @@ def document(scene, m: Measurement) -> dict:
         "groups": groups,
         "warnings": warnings,
     }
+
+
+_HINT = ("; was a finger on the display during the excitation, a segment unconnected, or the scene's "
+         "beam or material not the device's?")
+
+
+def _check(name: str, r) -> None:
+    """Refuse a fit the currents do not support (:data:`MAX_RESIDUAL_PCT`, :data:`MAX_COND`,
+    :data:`MAX_FACTOR`): an observer built on it would be worse than the uncalibrated model."""
+    bad = []
+    if not r.residual_pct <= MAX_RESIDUAL_PCT:
+        bad.append(f"residual {r.residual_pct:.3g} % of the currents (> {MAX_RESIDUAL_PCT:g} %)")
+    if not r.cond <= MAX_COND:
+        bad.append(f"condition number {r.cond:.3g} (> {MAX_COND:g})")
+    off = {k: v for k, v in r.factors.items() if not (1.0 / MAX_FACTOR <= v <= MAX_FACTOR)}
+    if off:
+        bad.append("factors " + ", ".join(f"{k} x{v:.3g}" for k, v in off.items())
+                   + f" (beyond x{1 / MAX_FACTOR:.2g} ... x{MAX_FACTOR:g})")
+    if bad:
+        raise RtctlError(f"calibration refused: group {name!r}: " + "; ".join(bad) + _HINT)
 
 
 def write(doc: dict, path) -> Path:
