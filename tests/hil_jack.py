@@ -257,6 +257,13 @@ class XrunCounter:
 CLI = [sys.executable, "-c", "import sys; from rtctl.cli import main; sys.exit(main())"]
 
 
+def emulator_errors(err: str) -> list[str]:
+    """The emulator's stderr lines that say something went wrong (its last line, the block
+    counts with "0 failed blocks", does not)."""
+    bad = ("error", "connecting to", "lacks ports", "Traceback", "cffi callback")
+    return [x for x in err.splitlines() if any(b in x for b in bad)]
+
+
 class EmulatorProcess:
     """``rtctl emulate audio SCENE --set ...`` in its own process group; stdout read by lines,
     stderr collected on a thread (a full pipe would stall the emulator)."""

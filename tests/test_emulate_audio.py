@@ -291,3 +291,74 @@ def test_a_refused_connection_is_retried_and_reported_once_if_it_lasts(refused_s
     said = err.splitlines()
     assert len(said) == lines and all("connecting to rtctl failed (Error connecting" in x for x in said), err
     assert client.links >= WIRED
+
+
+# --- --truth: the ring the process callback fills and the main thread drains -------------------
+
+def truth_plant(n_ch=2, period=64):
+    """A Plant with buffers only (no simulated group): the ring's behaviour is all that is tested."""
+    import numpy as np
+
+    p = ea.Plant.__new__(ea.Plant)
+    p.in_names, p.out_names, p.outputs, p.inputs = [f"a.{c}" for c in range(n_ch)], [], [], []
+    p.groups, p.rec, p.meta = [], None, {"scene": "fake"}
+    p.drive, p.sensed, p.truth = np.zeros((n_ch, period)), np.zeros((0, period)), np.zeros((n_ch, 4, period))
+    return p
+
+
+def periods(emu, plant, ks):
+    """The process callback's side for periods ``ks``: drive k V, tip k um, then the count."""
+    for k in ks:
+        plant.drive[:] = k
+        plant.truth[:, 0, :] = k * 1e-6
+        plant.keep(int(emu.ctl[ea.E_RECORDED]))
+        emu.ctl[ea.E_RECORDED] += 1
+
+
+def test_the_truth_trace_holds_every_period_once_and_shows_a_lap_as_a_gap(tmp_path, monkeypatch):
+    """Every period from the plant's reset on reaches the trace once, in order, whatever the
+    drain's rhythm; periods the ring lapped before a drain are counted and leave a gap in the
+    records' ``block`` (a reader can tell), the rest are intact."""
+    import numpy as np
+
+    from rtctl.trace import TraceReader
+
+    client = FakeClient()
+    client.samplerate = 64 * 50  # a ring of RECORD_S = 1 s: 50 periods
+    plant = truth_plant()
+    monkeypatch.setenv("RTCTL_AUDIO_CFUNC", "0")  # the Python process callback: no libjack needed
+    emu = ea.Emulator(client, plant, "rtctl(-[0-9]+)?", truth=tmp_path)
+    assert plant.rec.shape == (50, 2, 2, 64)
+    periods(emu, plant, range(7))  # before the run: not in its trace
+    emu._reset_plant()  # the Python callback resets at its next period
+    emu._truth_open("rtctl")
+    emu._truth_drain()  # nothing yet: the reset has not happened
+    emu.rec_from = int(emu.ctl[ea.E_RECORDED])  # what the process callback does when it resets
+    periods(emu, plant, range(0, 30))
+    emu._truth_drain()
+    periods(emu, plant, range(30, 45))
+    emu._truth_drain()
+    emu._truth_drain()  # nothing new: nothing written twice
+    periods(emu, plant, range(45, 45 + 80))  # 80 periods on a ring of 50 without a drain
+    emu._truth_close()
+    assert emu.rec_lost == 31 and emu.runs == 1  # the ring holds 49 whole periods
+    tr = TraceReader(tmp_path / "run-1")
+    blocks = np.asarray(tr.records["block"])
+    want = np.r_[np.arange(45), np.arange(76, 125)]
+    np.testing.assert_array_equal(blocks, want)
+    np.testing.assert_array_equal(tr.signal("drive")[:, ::64], np.tile(want, (2, 1)))
+    np.testing.assert_allclose(tr.signal("tip_um")[:, ::64], np.tile(want, (2, 1)), rtol=1e-6)
+    assert tr.layout["meta"]["client"] == "rtctl" and tr.layout["meta"]["scene"] == "fake"
+
+
+def test_the_plant_says_the_scene_events_are_not_played(capsys):
+    """The emulator's finger keeps the scene's first load: a scene whose events change it gets
+    one line on stderr saying so, a scene without events none."""
+    from rtctl import scene
+
+    ea.Plant(scene.load("line-bimorph-5-closed", ["timing.block=64"]), 48000.0, 64)
+    err = capsys.readouterr().err
+    assert err.splitlines() == ["rtctl emulate audio: the scene's events (3) are not played: the simulated finger "
+                                "keeps the load the scene starts with"], err
+    ea.Plant(scene.load("line-bimorph-5", ["timing.block=64"]), 48000.0, 64)
+    assert capsys.readouterr().err == ""

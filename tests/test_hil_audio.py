@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 import pytest
-from hil_jack import CLI, JACKD, EmulatorProcess, FakeRun, JackServer, xrun_causes
+from hil_jack import CLI, JACKD, EmulatorProcess, FakeRun, JackServer, emulator_errors, xrun_causes
 from optional import require
 
 pytestmark = pytest.mark.hil
@@ -71,13 +71,6 @@ def audio_run(tmp_path_factory):
     assert proc.returncode == 0, proc.stderr
     return dict(sim=sim.summary, audio=json.loads(proc.stdout), tmp=tmp, ready=ready, causes=xrun_causes(log),
                 emu_code=code, emu_err=emu_err)
-
-
-def emulator_errors(err: str) -> list[str]:
-    """The emulator's stderr lines that say something went wrong (its last line, the block
-    counts with "0 failed blocks", does not)."""
-    bad = ("error", "connecting to", "lacks ports", "Traceback", "cffi callback")
-    return [x for x in err.splitlines() if any(b in x for b in bad)]
 
 
 def lockin(x, f, fs):
