@@ -297,3 +297,21 @@ def test_fit_bounds():
                           ({"factors": {**good.factors, "damping": 3.5}}, "damping x3.5")):
         with pytest.raises(RtctlError, match=re.escape(words)):
             K._check("g", dataclasses.replace(good, **change))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("d31,eps33T", [(0.9, 1.1), (0.9, 0.9), (1.1, 0.9), (1.1, 1.1)])
+def test_fit_converges_on_a_softer_sharper_beam(d31, eps33T):
+    """E x0.9 with the damping halved: the first resonance 5 % low and twice as sharp. From the
+    nominal factors Levenberg-Marquardt ran d31 and the damping to 0 on the first of these; the
+    fit starts from a scan of E instead. Currents of the model itself (no noise): the factors
+    come back to 1e-5."""
+    s = scene.load(SCENE)
+    g = s.group("lateral")
+    params = BeamParams.from_fe(Models(K.lifted(s)).beam(g))
+    front = C.FrontEnd(48000.0, g.amplifier.bandwidth, g.sense.aa_cutoff, g.sense.aa_order, n_images=20)
+    lines = K.plan(s)[0][0].lines
+    truth = {"d31": d31, "E": 0.9, "eps33T": eps33T, "damping": 0.5}
+    r = C.fit(params, front, lines, C.sensed_per_volt(params, front, lines, truth)[None])
+    for k, v in truth.items():
+        assert r.factors[k] == pytest.approx(v, rel=1e-5), (k, r.factors)
