@@ -89,6 +89,8 @@ def _parser() -> argparse.ArgumentParser:
     _tool(sub, "selfsense", "transfer-matrix admittance plots and the observer accuracy sweep (SCENE ...)",
           "rtctl.selfsense.cli:main")
     _tool(sub, "render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main")
+    _tool(sub, "sweep", "design sweep on Dask: model, reach, selfsense or run over the product of --vary values "
+          "(SCENE --vary KEY=SPEC ...)", "rtctl.cli:_sweep_main")
     b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`, "
                        "`bench control`",
                        description="benchmarks (the loop's own speed: make bench)")
@@ -138,6 +140,20 @@ def _delegate(args) -> int:
         return int(getattr(importlib.import_module(module), func)(list(args.rest)) or 0)
     except SystemExit as e:  # the tool's own argparse: --help or a usage error
         return _exit_status(e)
+
+
+def _sweep_main(argv) -> int:
+    """``rtctl sweep``: its points may be whole runs, and only the command line imports the
+    engine, so it hands the sweep the engine's ``run`` (imported when a sweep asks for it)."""
+    from .sweep.cli import main
+
+    return main(argv, runner=_engine_run)
+
+
+def _engine_run():
+    from .engine.run import run
+
+    return run
 
 
 def _exit_status(e: SystemExit) -> int:
