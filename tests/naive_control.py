@@ -25,9 +25,9 @@ from rtctl.control._kernels import (
     ON,
     PATIENCE,
     REF,
-    RING,
     RUN,
     SAT,
+    START,
     SUM,
     TARGET,
     TPREV,
@@ -55,8 +55,8 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
         a = col[CMD]
         starting = not col[ON]
         if starting or r != col[TPREV]:
-            a = r / col[GHAT] if col[GHAT] > 0 else r * col[FF]
-            col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM] + col[RING]
+            a = r / col[GHAT] if col[GHAT] > 0 else START * r * col[FF]
+            col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM]
             col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
         elif col[WAIT] > 0:
             col[WAIT] -= 1

@@ -8,7 +8,7 @@ import pytest
 from naive_control import amplitude_control as naive
 
 from rtctl.control import AmplitudeController, amplitude_control, design
-from rtctl.control._kernels import CMD, ENABLE, MAX_STEP, SAT, TARGET
+from rtctl.control._kernels import CMD, ENABLE, MAX_STEP, SAT, START, TARGET
 from rtctl.dsp._kernels import N_PEND, P_AMP
 from rtctl.safety import CONTROL_FROZEN, CONTROL_SATURATED
 
@@ -53,23 +53,26 @@ def test_design_waits_for_window_and_latency():
     assert design(2, 300) == (1.0, 303)
 
 
-@pytest.mark.parametrize("error", [0.2, 0.3, 0.7, 0.95, 1.0, 1.05, 1.5, 3.0, 6.0])
+@pytest.mark.parametrize("error", [0.1, 0.2, 0.3, 0.5, 0.7, 0.95, 1.0, 1.05, 1.5, 3.0, 6.0])
 def test_any_model_gain_error_is_removed_without_crossing_the_target(error):
-    """A static plant whose gain the model has wrong by ``error``: the feedforward is off by that
-    factor (or capped at max_voltage) until the first correction, a wait and two stretches of
-    fresh estimates after the command; it lands exactly on the target when the error is within
-    MAX_STEP (each correction moves by at most that), and the truth never crosses the target on
-    its way (feedback adds no overshoot)."""
+    """A static plant whose gain the model has wrong by ``error``: the first command aims at START
+    of the target by the model (or is capped at max_voltage) until the first correction, a wait
+    and two stretches of fresh estimates after it; the correction lands exactly on the target
+    when the remaining error is within MAX_STEP (each correction moves by at most that), and the
+    truth never crosses the target on its way unless the model's gain is more than 1 / START
+    too low (feedback adds no overshoot)."""
     gain, target = 2e-7, 12e-6
     loop = Loop([gain], [gain * error], [target])
     every = loop.ctl.warm + 2 * loop.ctl.hold
     truth = loop.run(4 * every)[:, 0]
-    first = min(target / error, 150.0 * gain)  # the feedforward's tip amplitude
+    first = min(START * target / error, 150.0 * gain)  # the feedforward's tip amplitude
     np.testing.assert_allclose(truth[1:every + 1], first, rtol=1e-12)
     steps = 1 if first / target >= 1.0 / MAX_STEP else 2
     np.testing.assert_allclose(truth[1 + steps * every:], target, rtol=1e-12)
     side = np.sign(np.round(truth[1:] / target - 1.0, 12))
     assert np.all(side[side != 0] == side[0])
+    if error >= START:  # a model no more than 1 / START too weak: the tip comes up from below
+        assert truth.max() <= target * (1 + 1e-12)
 
 
 def test_a_plant_change_is_corrected_once_the_window_has_passed_it():

@@ -52,6 +52,10 @@ AGREE = 0.05
 #: how many (wait + 2 stretches) may pass without two agreeing stretches before a correction is
 #: made anyway, at half strength (a plant that keeps drifting is still followed)
 PATIENCE = 4
+#: the first command of a tone aims at this share of its target by the model: the model's finger
+#: is a guess (a softer finger than it says lets a beam near its loaded resonance move up to 2x
+#: more), so the tip starts below the target and feedback brings it there without overshoot
+START = 0.7
 #: an error smaller than this is left alone: a correction blinds the loop for a window, and the
 #: loop then answers a change of the plant a window later
 DEADBAND = 0.002
@@ -101,11 +105,11 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
             # last fresh estimate showed (what feedback learned), else from the model's
             if state[GHAT, i] > 0.0:
                 a = r / state[GHAT, i]
-            else:
-                a = r * state[FF, i]
+            else:  # the model's drive, aimed low: its finger is a guess, feedback brings it up
+                a = START * r * state[FF, i]
             state[ON, i] = 1.0
             state[TPREV, i] = r
-            state[WAIT, i] = state[WARM, i] + state[RING, i]  # let the switch-on transient ring down
+            state[WAIT, i] = state[WARM, i]
             state[REF, i] = 0.0
             state[SUM, i] = 0.0
             state[RUN, i] = 0.0

@@ -42,17 +42,26 @@ def analysis_window(duration: float, freqs) -> float:
     return min(max(0.5, 2.0 / lowest), duration / 2)
 
 
+def fit_window(freqs) -> float:
+    """Seconds of the windows a changing amplitude is fitted over: one period of the lowest tone
+    and of the closest two tones' difference (a beat pair's envelope: over less, their columns
+    are nearly alike and any transient shows as a huge pair of amplitudes), at least 4 ms."""
+    f = np.unique(np.asarray(freqs, dtype=float))
+    gap = float(np.min(np.diff(f))) if f.size > 1 else math.inf
+    return max(1.0 / f[0], 1.0 / gap, 4e-3)
+
+
 def settle_time(x, t, freqs, start, final) -> float | None:
     """Seconds from ``start`` until the amplitude stays within SETTLE_BAND of ``final``.
 
-    The amplitude is fitted over windows of one period of the lowest tone (at least 4 ms) at
-    half-window steps; the result is the end of the first window from which every later one is
-    within the band, so it is an upper bound with a resolution of half a window. None if the
-    amplitude never settles in the run.
+    The amplitude is fitted over windows of :func:`fit_window` at half-window steps; the result
+    is the end of the first window from which every later one is within the band, so it is an
+    upper bound with a resolution of half a window. None if the amplitude never settles in the
+    run.
     """
     if not final > 0:
         return None
-    w = max(1.0 / min(freqs), 4e-3)
+    w = fit_window(freqs)
     edges = np.arange(start, t[-1] - w, w / 2)
     if edges.size == 0:
         return None
@@ -134,7 +143,7 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
                 # error against the target) and the worst settle over all segments
                 start = min(tn.start for tn in tones)
                 segs = _event_settles(rig, tip, t, freqs, n / fs, start)
-                row["events"] = segs[1:]
+                row["start"], row["events"] = segs[0], segs[1:]
                 last = segs[-1]["true_um"]
                 if last is not None:
                     row["true_um"] = amp = last
@@ -299,9 +308,9 @@ def plot_channels(rows: list[dict], max_rows: int = 8) -> tuple[list[int], str]:
 
 def amplitude_track(t, x, freqs, start: float = 0.0):
     """The amplitude of ``x`` at ``freqs`` (summed: a beat pair's envelope peak) over time: fits
-    over windows of one period of the lowest tone (at least 4 ms) at half-window steps; returns
-    (window centres, amplitudes)."""
-    w = max(1.0 / min(freqs), 4e-3)
+    over windows of :func:`fit_window` at half-window steps; returns (window centres,
+    amplitudes)."""
+    w = fit_window(freqs)
     edges = np.arange(start, t[-1] - w, w / 2)
     amps = np.full(edges.size, np.nan)
     for k, e in enumerate(edges):
@@ -309,6 +318,18 @@ def amplitude_track(t, x, freqs, start: float = 0.0):
         if np.all(np.isfinite(x[m])):
             amps[k] = fit_amplitudes(x[m], t[m], freqs).sum()
     return edges + w / 2, amps
+
+
+def against_target(x, t, freqs, t0: float, t1: float, target: float) -> dict:
+    """A tone's amplitude in ``x`` from ``t0`` (its start or an event) to ``t1`` against ``target``
+    (the unit of ``x``), with the windows of :func:`settle_time`: ``settle_ms``, how long until it
+    stays within SETTLE_BAND of the target (None if it is not there by ``t1``), and
+    ``overshoot_pct``, the highest windowed amplitude above the target (negative: never above)."""
+    seg = (t >= t0) & (t < t1)
+    st = settle_time(x[seg], t[seg], freqs, t0, target)
+    _, amps = amplitude_track(t[seg], x[seg], freqs, t0)
+    peak = float(np.nanmax(amps)) if np.any(np.isfinite(amps)) else math.nan
+    return {"settle_ms": None if st is None else 1e3 * st, "overshoot_pct": 100.0 * (peak / target - 1.0)}
 
 
 def _amplitude_panel(ax, r, reader, ch, t, n, has_tip) -> None:
