@@ -62,6 +62,17 @@ DEADBAND = 0.002
 
 
 @kernel
+def _watch_anew(state, i):
+    """A new command: no stretch of its fresh estimates yet."""
+    state[REF, i] = 0.0
+    state[SUM, i] = 0.0
+    state[RUN, i] = 0.0
+    state[TRIES, i] = 0.0
+    state[ALL, i] = 0.0
+    state[NALL, i] = 0.0
+
+
+@kernel
 def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
     """Set the next block's amplitude of every controlled tone; returns status bits.
 
@@ -110,12 +121,7 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
             state[ON, i] = 1.0
             state[TPREV, i] = r
             state[WAIT, i] = state[WARM, i]
-            state[REF, i] = 0.0
-            state[SUM, i] = 0.0
-            state[RUN, i] = 0.0
-            state[TRIES, i] = 0.0
-            state[ALL, i] = 0.0
-            state[NALL, i] = 0.0
+            _watch_anew(state, i)
         elif state[WAIT, i] > 0.0:
             state[WAIT, i] -= 1.0
             continue
@@ -171,12 +177,7 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
             if limited and step > 1.0:
                 step = 1.0  # the limiter holds this channel: no windup
             a = a * step
-            state[REF, i] = 0.0
-            state[SUM, i] = 0.0
-            state[RUN, i] = 0.0
-            state[TRIES, i] = 0.0
-            state[ALL, i] = 0.0
-            state[NALL, i] = 0.0
+            _watch_anew(state, i)
             state[WAIT, i] = state[WARM, i]  # judge this command only once the estimate is all of it
         if a >= state[AMAX, i]:
             a = state[AMAX, i]
