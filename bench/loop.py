@@ -1,13 +1,14 @@
 """Real-time factor of the whole block step: synthesis + simulated plant + limiter.
 
 With the self-sensing observer off and on (``control.observe``: lock-in of drive and segment
-currents, observer matrices, tip waveform) and in closed loop (``control.mode = "closed"``: an
-observer per channel and the amplitude controller), for 1, 16, 48 and 128 bimorph channels (the demo
-scene's beam: 4 modes, 3-branch finger, amplifier, 2-segment current sense; one tone per channel)
-at blocks of 16, 32, 64 and 256 samples at 48 kHz, times ``Rig.advance`` (read, ``@njit`` step,
-write: everything the loop does per block except the trace) and, in the same process, a plain
-numpy implementation of the same step (``np.cos`` synthesis, ``np.clip`` and a per-sample slew
-loop, the same discrete plant as a dense matmul per sample, numpy noise and quantization).
+currents, observer matrices, tip waveform) and in closed loop (``control.mode = "closed"``: the
+group's one observer stage with a lock-in window per channel, and a controller per channel), for
+1, 16, 48 and 128 bimorph channels (the demo scene's beam: 4 modes, 3-branch finger, amplifier,
+2-segment current sense; one tone per channel) at blocks of 16, 32, 64 and 256 samples at 48 kHz,
+times ``Rig.advance`` (read, ``@njit`` step, write: everything the loop does per block except the
+trace) and, in the same process, a plain numpy implementation of the same step (``np.cos``
+synthesis, ``np.clip`` and a per-sample slew loop, the same discrete plant as a dense matmul per
+sample, numpy noise and quantization).
 
 Compile time is measured apart, in child processes with an empty and then a warm numba cache
 (``NUMBA_CACHE_DIR``), so it shows both the cold cost and what caching saves across runs.
@@ -150,7 +151,7 @@ def main(argv=None) -> int:
     for c, b in configs:
         rig = build(scene_for(c, b))
         obs_rig = build(scene_for(c, b, observe=True))
-        cl_rig = build(scene_for(c, b, closed=True))  # observer per channel + controller
+        cl_rig = build(scene_for(c, b, closed=True))  # observer (a window per channel) + controllers
         for r in (rig, obs_rig, cl_rig):
             r.apply_schedule(0)  # every tone (every controller) on from the first block
         # interleaved, so all see the same machine load; mean RTF, worst p99

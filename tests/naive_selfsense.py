@@ -15,15 +15,16 @@ def piece_matrix(lam, EI, x):
     return scipy.linalg.expm(A * x)
 
 
-def observer_block(H, drive, sensed, freqs, fs, n_seg):
-    """Estimates from one full window starting at phase 0: direct sums, then ``H``.
+def observer_block(H, drive, sensed, freqs, fs, n_seg, start=0):
+    """Estimates from one full window starting at sample ``start`` of the references (phase 0 at
+    sample 0): direct sums, then ``H``.
 
     drive: (n_ch, W); sensed: (n_ch * n_seg, W); freqs: (n_ch, n_t); H complex
     (n_ch, n_t, n_est, 1 + n_seg). Returns est (n_ch, n_t, n_est) complex and the rebuilt
     tip waveform over the window's last ``block`` samples is left to the caller.
     """
     n_ch, W = drive.shape
-    n = np.arange(W)
+    n = start + np.arange(W)
     est = np.zeros(H.shape[:3], dtype=complex)
     for c in range(n_ch):
         for k in range(freqs.shape[1]):

@@ -45,8 +45,12 @@ def test_open_loop_compiles_no_controller_closed_loop_one_per_channel():
     assert not any(n.startswith(("control", "observer")) for n in ol)
     cl = [s.name for s in build(scene.load("line-bimorph-5", ["control.mode=closed"])).stages]
     assert [n for n in cl if n.startswith("control")] == [f"control lateral.{i}" for i in range(5)]
-    # each controller right after its channel's observer, all after the limiter
-    assert cl.index("limiter") < cl.index("observer lateral.0") < cl.index("control lateral.0")
+    # one observer for the group (each channel's window its own: tests/test_rig_observer.py), every
+    # controller after it and all of them after the limiter
+    assert [n for n in cl if n.startswith("observer")] == ["observer lateral"]
+    assert cl.index("limiter") < cl.index("observer lateral") < cl.index("control lateral.0")
+    assert cl[cl.index("observer lateral") + 1:cl.index("control lateral.4") + 1] == [
+        f"control lateral.{i}" for i in range(5)]
 
 
 def test_closed_loop_needs_tones():

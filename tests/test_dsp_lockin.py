@@ -115,6 +115,43 @@ def test_matches_naive_twin_with_frequency_change():
     np.testing.assert_allclose(np.array(got), want, rtol=0, atol=1e-12)
 
 
+def test_window_per_row_matches_naive_twin_per_row():
+    """A window per row: every slot equals the one-channel twin over its own row's window, through
+    many ring wraps of each (50, 12 and 30 hops) and a frequency change on one row."""
+    rng = np.random.default_rng(4)
+    n, hop, ramp = 3200, 8, 32
+    windows = [400, 96, 240]
+    freqs = [[300.0, 1000.0], [2000.0, 0.0], [600.0, 50.0]]
+    x = rng.standard_normal((3, n))
+    sched = {800: 1500.0}  # row 2, slot 0
+    lock = LockIn(3, freqs, FS, windows, hop=hop, ramp=ramp)
+    assert lock.window == 400 and lock.windows.tolist() == windows
+    got = []
+    for a in range(0, n, hop):
+        if a in sched:
+            lock.set_freq([freqs[0], freqs[1], [sched[a], 50.0]])
+        lock.process(np.ascontiguousarray(x[:, a:a + hop]))
+        got.append(lock.phasor)
+    got = np.array(got)
+    for r, (w, row) in enumerate(zip(windows, freqs)):
+        for k, f in enumerate(row):
+            if f == 0.0:
+                assert np.isnan(got[:, r, k]).all()
+                continue
+            want = naive_dsp.lockin(x[r], f, FS, w, hop, ramp, sched if (r, k) == (2, 0) else None)
+            np.testing.assert_allclose(got[:, r, k], want, rtol=0, atol=1e-12, err_msg=f"row {r} slot {k}")
+    amp = lock.amplitude
+    np.testing.assert_allclose(amp[np.isfinite(amp)], np.abs(got[-1])[np.isfinite(amp)], rtol=1e-12)
+
+
+def test_window_per_row_validation():
+    with pytest.raises(ValueError, match=r"window\[1\] = 100 is not a multiple of hop = 32"):
+        LockIn(2, [[250.0], [500.0]], FS, [96, 100], hop=32)
+    with pytest.raises(ValueError, match=r"window has shape \(3,\): expected an int or \(2,\)"):
+        LockIn(2, [[250.0], [500.0]], FS, [96, 96, 96])
+    assert LockIn(2, [[250.0], [500.0]], FS, [96, 48]).hop == 24  # the largest <= 32 dividing both
+
+
 def test_reads_bank_phase_across_a_frequency_ramp():
     """Bank and lock-in ramp frequency alike, so the tone's phase relative to the reference
     stays phi; a reference that stepped instead would be off by 2 pi df (R - 1) / (2 fs)."""
@@ -133,14 +170,14 @@ def test_reads_bank_phase_across_a_frequency_ramp():
     assert est[0, 0, 1] == pytest.approx(phi, abs=1e-10)
 
 
-@given(splits=st.lists(st.integers(1, 1999), max_size=20))
+@given(splits=st.lists(st.integers(1, 1999), max_size=20), per_row=st.booleans())
 @settings(max_examples=30, deadline=None)
-def test_chunk_invariance(splits):
+def test_chunk_invariance(splits, per_row):
     """Sums are accumulated in time order and hops close on the sample clock: bitwise equal."""
     x = np.random.default_rng(2).standard_normal((2, 2000))
 
     def final(cuts):
-        lock = LockIn(2, [[100.0, 2000.0], [0.0, 50.0]], FS, 480, hop=16)
+        lock = LockIn(2, [[100.0, 2000.0], [0.0, 50.0]], FS, [480, 160] if per_row else 480, hop=16)
         out = feed(lock, x, cuts)[-1]
         return out, lock.acc.copy(), lock.ref.copy()
 

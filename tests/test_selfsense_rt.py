@@ -10,7 +10,7 @@ from rtctl.plant import Amplifier, BimorphPlant, CurrentSense, SimGroup
 from rtctl.plant.beam import BeamSpec, Layer, build_beam
 from rtctl.plant.materials import BUILTIN
 from rtctl.selfsense.frontend import FrontEnd
-from rtctl.selfsense.rt import Observer, tone_window
+from rtctl.selfsense.rt import Observer, ObserverRows, tone_window, tone_windows
 from rtctl.selfsense.sweep import finger_loads, run_case
 from rtctl.selfsense.tmm import TMMBeam, _load_stiffness
 
@@ -45,6 +45,62 @@ def test_kernel_matches_naive_twin():
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
     wave = rebuild(want[:, :, 0], freqs, FS, W - BLOCK, BLOCK)
     np.testing.assert_allclose(obs.wave, wave, rtol=1e-9, atol=1e-9 * np.abs(wave).max())
+
+
+def test_window_per_channel_matches_naive_twin_per_channel():
+    """Each channel over whole periods of its own tones only: its estimates and rebuilt wave are
+    those of direct sums over its own last window (not the longest one's), through ring wraps."""
+    rng = np.random.default_rng(6)
+    freqs = np.array([[245.0, 255.0], [1000.0, 0.0], [120.0, 40.0], [250.0, 0.0]])
+    windows = tone_windows(freqs, FS, BLOCK)
+    # the smallest multiple of the block holding whole periods of the row's tones, by hand:
+    # 245 and 255 Hz repeat every 9600 samples, 1 kHz every 48, 40 Hz every 1200, 250 Hz every 192
+    assert windows.tolist() == [9600, 96, 2400, 192]
+    obs = Observer(TMMBeam.from_fe(fe_model()), freqs, FS, BLOCK, window=windows)
+    assert obs.window == 9600 and np.array_equal(obs.windows, windows)
+    H = rng.standard_normal(obs.H.shape)
+    H[1, 1] = H[3, 1] = 0.0                        # the unused slots
+    obs.H[:] = H
+    n_total = 9600 + 2400 + 5 * BLOCK              # not a multiple of any window but the last two
+    n = np.arange(n_total)
+    drive = np.stack([np.cos(2 * np.pi * f[0] * n / FS + 0.3) + rng.standard_normal(n_total) for f in freqs])
+    sensed = rng.standard_normal((4 * obs.n_seg, n_total)) * 1e-6
+    for b in range(n_total // BLOCK):
+        sl = slice(b * BLOCK, (b + 1) * BLOCK)
+        assert obs.process(np.ascontiguousarray(drive[:, sl]), np.ascontiguousarray(sensed[:, sl])) == 0
+    Hc = H[..., 0] + 1j * H[..., 1]
+    got = obs.est[..., 0] + 1j * obs.est[..., 1]
+    m = obs.n_seg
+    for c, w in enumerate(windows):
+        rows = slice(c * m, (c + 1) * m)
+        want = observer_block(Hc[c:c + 1], drive[c:c + 1, -w:], sensed[rows, -w:], freqs[c:c + 1], FS, m,
+                              start=n_total - w)
+        np.testing.assert_allclose(got[c:c + 1], want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+        wave = rebuild(want[:, :, 0], freqs[c:c + 1], FS, n_total - BLOCK, BLOCK)
+        np.testing.assert_allclose(obs.wave[c:c + 1], wave, rtol=1e-9, atol=1e-9 * np.abs(wave).max())
+        for k, f in enumerate(freqs[c]):  # the drive's own phasor (amplitude, phase) per slot
+            if f > 0:
+                u = 2.0 / w * np.sum(drive[c, -w:] * np.exp(-2j * np.pi * f * np.arange(n_total - w, n_total) / FS))
+                assert obs.u_out[c, k, 0] == pytest.approx(abs(u), rel=1e-9)
+                assert obs.u_out[c, k, 1] == pytest.approx(np.angle(u), abs=1e-9)
+        if w < obs.window:  # and the longest window would have given something else
+            other = observer_block(Hc[c:c + 1], drive[c:c + 1, -obs.window:], sensed[rows, -obs.window:],
+                                   freqs[c:c + 1], FS, m, start=n_total - obs.window)
+            assert np.abs(other - want).max() > 1e-3 * np.abs(want).max()
+    # a channel's view: the observer's own arrays, indexed within the view
+    view = ObserverRows(obs, 2, 4)
+    assert view.n_channels == 2 and view.first == 2 and view.window == 2400
+    assert np.shares_memory(view.est, obs.est) and np.array_equal(view.est, obs.est[2:4])
+    assert view.est.flags.c_contiguous and view.u_out.flags.c_contiguous
+    assert np.shares_memory(view.u_out, obs.u_out) and view.u_acc is obs.lock_u.acc
+    assert np.array_equal(view.scale, 2.0 / windows[2:4])
+
+
+def test_window_must_be_whole_blocks():
+    from rtctl.errors import ModelError
+
+    with pytest.raises(ModelError, match=r"window\[1\] = 100 must be a multiple of block = 32"):
+        Observer(TMMBeam.from_fe(fe_model()), [[250.0], [500.0]], FS, BLOCK, window=[192, 100])
 
 
 def test_nonfinite_reading_is_flagged():

@@ -397,11 +397,12 @@ def osc_read(state, out):
 # ---- lock-in ---------------------------------------------------------------------------------
 # accumulator rows, shape (N_ACC, n_slots); slot s = channel * n_freq + f
 ACC_R, ACC_I = 0, 1  # partial sum of x conj(ref) over the current hop
-S_R, S_I = 2, 3  # window sum: the last n_hops complete hops
+S_R, S_I = 2, 3  # window sum: the slot's last NHOP complete hops
 F_R, F_I = 4, 5  # fresh sum of the hops written since the ring last wrapped
 EST_A, EST_P = 6, 7  # amplitude (peak) and phase (rad) at the last complete hop
 HOP = 8  # samples per hop (constant)
-N_ACC = 9
+NHOP = 9  # hops in this slot's window (constant; the ring holds the longest slot's)
+N_ACC = 10
 
 
 @kernel
@@ -435,44 +436,67 @@ def _lockin_demod(ref, chan, acc, x, j0, m, ramping):
 
 @kernel
 def _lockin_hop(ref, acc, ring, hop_index):
-    """Close hop ``hop_index`` (count since reset, 0-based): move its partial sums into the window."""
-    n_hops = ring.shape[0]
-    idx = hop_index % n_hops
-    for s in range(acc.shape[1]):
-        pr = _flush(acc[ACC_R, s])
-        pi = _flush(acc[ACC_I, s])
-        acc[S_R, s] += pr - ring[idx, 0, s]
-        acc[S_I, s] += pi - ring[idx, 1, s]
-        acc[F_R, s] += pr
-        acc[F_I, s] += pi
-        ring[idx, 0, s] = pr
-        ring[idx, 1, s] = pi
-        acc[ACC_R, s] = 0.0
-        acc[ACC_I, s] = 0.0
-        if idx == n_hops - 1:
-            # the ring now holds exactly the hops added to F since the last wrap: replace the
-            # add-and-subtract running sum by this fresh one, so round-off cannot drift
-            acc[S_R, s] = acc[F_R, s]
-            acc[S_I, s] = acc[F_I, s]
-            acc[F_R, s] = 0.0
-            acc[F_I, s] = 0.0
-        acc[S_R, s] = _flush(acc[S_R, s])
-        acc[S_I, s] = _flush(acc[S_I, s])
-        acc[F_R, s] = _flush(acc[F_R, s])
-        acc[F_I, s] = _flush(acc[F_I, s])
+    """Close hop ``hop_index`` (count since reset, 0-based): move its partial sums into the window.
+
+    Each slot's window holds its own ``NHOP`` hops (ring rows ``0 .. NHOP - 1``). Slots are taken
+    in runs of equal ``NHOP`` (a group-wide window is one run; per-channel windows a run per
+    channel), so the ring row is one per run and the inner loop stays a contiguous sweep.
+    """
+    ns = acc.shape[1]
+    s0 = 0
+    while s0 < ns:
+        nh = acc[NHOP, s0]
+        s1 = s0 + 1
+        while s1 < ns and acc[NHOP, s1] == nh:
+            s1 += 1
+        n_hops = max(1, int(nh))  # >= 1 from LockIn; guarded so a zeroed acc cannot raise
+        idx = hop_index % n_hops
+        wrap = idx == n_hops - 1
+        for s in range(s0, s1):
+            pr = _flush(acc[ACC_R, s])
+            pi = _flush(acc[ACC_I, s])
+            acc[S_R, s] += pr - ring[idx, 0, s]
+            acc[S_I, s] += pi - ring[idx, 1, s]
+            acc[F_R, s] += pr
+            acc[F_I, s] += pi
+            ring[idx, 0, s] = pr
+            ring[idx, 1, s] = pi
+            acc[ACC_R, s] = 0.0
+            acc[ACC_I, s] = 0.0
+            if wrap:
+                # the ring now holds exactly the hops added to F since the last wrap: replace the
+                # add-and-subtract running sum by this fresh one, so round-off cannot drift
+                acc[S_R, s] = acc[F_R, s]
+                acc[S_I, s] = acc[F_I, s]
+                acc[F_R, s] = 0.0
+                acc[F_I, s] = 0.0
+            acc[S_R, s] = _flush(acc[S_R, s])
+            acc[S_I, s] = _flush(acc[S_I, s])
+            acc[F_R, s] = _flush(acc[F_R, s])
+            acc[F_I, s] = _flush(acc[F_I, s])
+        s0 = s1
 
 
 @kernel
-def _lockin_estimate(ref, acc, n_hops):
-    """Amplitude and phase of every slot from its window sum (once per call, not per hop)."""
-    scale = 2.0 / (n_hops * acc[HOP, 0])
-    for s in range(acc.shape[1]):
-        if ref[INC1, s] > 0.0:
-            acc[EST_A, s] = scale * math.hypot(acc[S_R, s], acc[S_I, s])
-            acc[EST_P, s] = math.atan2(acc[S_I, s], acc[S_R, s])
-        else:
-            acc[EST_A, s] = np.nan
-            acc[EST_P, s] = np.nan
+def _lockin_estimate(ref, acc):
+    """Amplitude and phase of every slot from its window sum (once per call, not per hop); the
+    scale is one per run of slots with equal windows, as in :func:`_lockin_hop`."""
+    ns = acc.shape[1]
+    s0 = 0
+    while s0 < ns:
+        nh = acc[NHOP, s0]
+        s1 = s0 + 1
+        while s1 < ns and acc[NHOP, s1] == nh:
+            s1 += 1
+        scale = 2.0 / (nh * acc[HOP, 0])
+        for s in range(s0, s1):
+            if ref[INC1, s] > 0.0:
+                acc[EST_A, s] = scale * math.hypot(acc[S_R, s], acc[S_I, s])
+                acc[EST_P, s] = math.atan2(acc[S_I, s], acc[S_R, s])
+            else:
+                acc[EST_A, s] = np.nan
+                acc[EST_P, s] = np.nan
+        s0 = s1
 
 
 @kernel
@@ -488,9 +512,11 @@ def lockin_process(ref, pending, chan, acc, ring, x, out):
     chan : ndarray, shape (n_slots,), int64
         Input row of each slot (``slot // n_freq``).
     acc : ndarray, shape (N_ACC, n_slots), float64
-        Hop, window and fresh sums and the latest estimates, updated in place.
+        Hop, window and fresh sums and the latest estimates, updated in place; ``acc[NHOP]``
+        the hops in each slot's window (equal everywhere for a window shared by all slots).
     ring : ndarray, shape (n_hops, 2, n_slots), float64
-        Partial sums of the hops in the window (real, imaginary).
+        Partial sums of the hops in the window (real, imaginary); ``n_hops`` the longest
+        slot's (a slot uses rows ``0 .. acc[NHOP, s] - 1``).
     x : ndarray, shape (n_channels, n), float64, C-contiguous
         Input block.
     out : ndarray, shape (n_channels, n_freq, 2), float64
@@ -518,7 +544,7 @@ def lockin_process(ref, pending, chan, acc, ring, x, out):
             closed = True
         t += m
     if closed:
-        _lockin_estimate(ref, acc, ring.shape[0])
+        _lockin_estimate(ref, acc)
     n_freq = out.shape[1]
     for s in range(ns):
         out[s // n_freq, s % n_freq, 0] = acc[EST_A, s]

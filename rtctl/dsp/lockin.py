@@ -99,11 +99,14 @@ class LockIn:
         estimates read NaN).
     fs : float
         Sample rate, Hz.
-    window : int
-        Window length W, samples, a multiple of ``hop``. Use :func:`beat_window` for beat pairs.
+    window : int or array_like of int, shape (n_channels,)
+        Window length W, samples, a multiple of ``hop``: one for every row, or one per row (a
+        row's slots then sum over its own last ``W[row]`` samples, e.g. whole periods of that
+        channel's tones only, so a fast channel need not wait for a slow one). Use
+        :func:`beat_window` for beat pairs.
     hop : int, optional
         The window slides in hops of this many samples. Default: the largest divisor of
-        ``window`` not above 32 (one block of the loop).
+        every window not above 32 (one block of the loop).
     ramp : int
         Samples over which a reference frequency change is ramped, as in the oscillator bank;
         use the bank's ramp so that a demodulated tone keeps reading the bank's phase across
@@ -126,7 +129,8 @@ class LockIn:
     samples); amplitude and phase (``hypot``, ``atan2``) are computed once at the end of a call
     in which a hop closed. Until ``W`` samples have been seen the window is zero-filled and the
     amplitude reads low. A reference frequency change mixes old and new products in the window
-    for ``W`` samples.
+    for ``W`` samples. With a window per row every statement holds per row, with its own ``W``;
+    the ring is sized for the longest and a row uses its first ``W[row] / hop`` entries.
 
     **No drift.** The window sum is updated by adding the new hop and subtracting the oldest,
     which alone would let round-off random-walk over hours; each time the ring wraps, the sum is
@@ -158,6 +162,13 @@ class LockIn:
     For the loop: ``lockin_process(*lockin.args, x, out)`` with
     ``lockin.args == (ref, pending, chan, acc, ring)``.
 
+    Attributes
+    ----------
+    window : int
+        The longest window, samples (the only one unless given per row).
+    windows : ndarray of int64, shape (n_channels,)
+        Each row's window, samples.
+
     Examples
     --------
     >>> from rtctl.dsp import OscillatorBank
@@ -174,13 +185,22 @@ class LockIn:
     def __init__(self, n_channels, freq, fs, window, hop=None, ramp=32):
         self.n_channels = _check_int("n_channels", n_channels, 1)
         self.fs = _check_fs(fs)
-        self.window = _check_int("window", window, 1)
+        if np.ndim(window) == 0:
+            w = [_check_int("window", window, 1)] * self.n_channels
+            names = ["window"] * self.n_channels
+        else:
+            if np.shape(window) != (self.n_channels,):
+                raise ValueError(f"window has shape {np.shape(window)}: expected an int or ({self.n_channels},)")
+            names = [f"window[{r}]" for r in range(self.n_channels)]
+            w = [_check_int(nm, x, 1) for nm, x in zip(names, window)]
+        self.windows = np.array(w, dtype=np.int64)
+        self.window = int(self.windows.max())
         if hop is None:
-            hop = max(d for d in range(1, min(32, self.window) + 1) if self.window % d == 0)
-        self.hop = _check_int("hop", hop, 1, self.window)
-        if self.window % self.hop:
-            raise ValueError(
-                f"window = {self.window} is not a multiple of hop = {self.hop}: choose hop dividing window")
+            hop = max(d for d in range(1, min(32, int(self.windows.min())) + 1) if not np.any(self.windows % d))
+        self.hop = _check_int("hop", hop, 1, int(self.windows.min()))
+        for nm, x in zip(names, w):
+            if x % self.hop:
+                raise ValueError(f"{nm} = {x} is not a multiple of hop = {self.hop}: choose hop dividing window")
         self.ramp = _check_int("ramp", ramp, 1, _k.MAX_RAMP)
         f = np.asarray(freq, dtype=np.float64)
         if f.ndim == 1:
@@ -194,6 +214,7 @@ class LockIn:
         self.pending = np.zeros((_k.N_PEND, ns))
         self.chan = np.repeat(np.arange(self.n_channels, dtype=np.int64), self.n_freq)
         self.acc = np.zeros((_k.N_ACC, ns))
+        self._n_hops = np.repeat(self.windows // self.hop, self.n_freq).astype(np.float64)
         self.ring = np.zeros((self.window // self.hop, 2, ns))
         self.reset()
 
@@ -232,6 +253,7 @@ class LockIn:
         _k.osc_init(self.ref, self.pending, flat, used * 1.0, np.zeros_like(flat), self.fs, float(self.ramp))
         self.acc[:] = 0.0
         self.acc[_k.HOP] = self.hop
+        self.acc[_k.NHOP] = self._n_hops
         self.acc[_k.EST_A] = np.where(used, 0.0, np.nan)
         self.acc[_k.EST_P] = np.where(used, 0.0, np.nan)
         self.ring[:] = 0.0
@@ -250,7 +272,7 @@ class LockIn:
     @property
     def phasor(self):
         """ndarray, shape (n_channels, n_freq), complex: ``A exp(i phi)`` at the last hop (NaN unused)."""
-        scale = 2.0 / self.window
+        scale = np.repeat(2.0 / self.windows, self.n_freq)
         x = scale * (self.acc[_k.S_R] + 1j * self.acc[_k.S_I])
         x[~(self.ref[_k.INC1] > 0.0)] = np.nan
         return x.reshape(self.n_channels, self.n_freq)

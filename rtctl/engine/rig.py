@@ -11,8 +11,9 @@ compiled function (:mod:`rtctl.engine.compose`)::
     oscillators   sine tones and beat pairs              (scenes with sines)
     pulses        square and pulse trains, held levels   (scenes with them)
     limiter       the final limiter: always, and always after every stage that writes ``out``
-    observer G    self-sensing of bimorph group G        (control.observe; per channel when closed)
-    control G     next block's tone amplitudes from G's estimates (control.mode = closed)
+    observer G    self-sensing of bimorph group G        (control.observe, closed loop)
+    control G.i   next block's tone amplitudes of channel G.i from its estimates (closed loop;
+                  one per channel, after its group's observer)
     [sim group i] the simulated plants advance by the limited block
                   ([bracketed]: the simulated device's, with ``SimDevice.in_block``; else the
                   engine calls its read and write around the block function)
@@ -85,7 +86,12 @@ class Rig:
         self.bank, self.pulses, self.render = self.stimulus.bank, self.stimulus.pulses, self.stimulus.render
         self._build_limiter(scene)
         self.closed = scene.control.mode == "closed"
-        self.observers, self.controllers = [], []  # (name, ObserverStage, group, first channel), ...
+        # the block function's observers, one per observed bimorph group: (group name,
+        # ObserverStage, group, its first channel)
+        self.observer_stages = []
+        # what is observed, per group or (closed loop) per channel: (name, ObserverStage or
+        # ObserverChannels, group, first channel); controllers: (name, that entry, controller)
+        self.observers, self.controllers = [], []
         if scene.control.observe or self.closed:
             self._build_observers(scene)
         if self.closed:
@@ -142,9 +148,12 @@ class Rig:
         self.probes = [(f"io.{pn}", unit, self.device, r) for r, (pn, unit) in enumerate(self.device.probe_names)]
 
     def _build_observers(self, scene):
-        """Self-sensing observers on the scene's tone frequencies: one per bimorph group, or, under
-        closed-loop control, one per channel, so that each channel's lock-in window holds whole
-        periods of its own tones only (a 250 Hz channel is not made to wait for a 2 Hz one)."""
+        """Self-sensing observers on the scene's tone frequencies: one stage per bimorph group.
+        Under closed-loop control each channel's lock-in window holds whole periods of its own
+        tones only (a 250 Hz channel is not made to wait for a 2 Hz one), and :attr:`observers`
+        lists the channels one by one (views of their group's stage) for a controller each; else
+        the window holds whole periods of every tone of the group."""
+        from ..selfsense.rt import tone_windows
         from ..selfsense.stage import ObserverStage
 
         if scene.stimulus.kind != "tones":
@@ -156,17 +165,20 @@ class Rig:
         for g in scene.actuator:
             n, n_seg = n_channels(g), n_segments(g)
             if g.type == "bimorph":
-                spans = [(c, c + 1) for c in range(ch0, ch0 + n)] if self.closed else [(ch0, ch0 + n)]
-                for c0, c1 in spans:
-                    per = [[f for tn in self.tones if tn.channel == c for f in tn.freqs] for c in range(c0, c1)]
-                    width = max(1, max(len(p) for p in per))
-                    freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
-                    obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[c0:c1])
-                    r0, r1 = row0 + (c0 - ch0) * n_seg, row0 + (c1 - ch0) * n_seg
-                    st = ObserverStage(obs, self.latency, self.out[c0:c1], self.sensed[r0:r1],
-                                       self.estimated_amp[c0:c1])
-                    name = g.name if not self.closed else f"{g.name}.{c0 - ch0}"
-                    self.observers.append((name, st, g, c0))
+                c1 = ch0 + n
+                per = [[f for tn in self.tones if tn.channel == c for f in tn.freqs] for c in range(ch0, c1)]
+                width = max(1, max(len(p) for p in per))
+                freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
+                window = tone_windows(freqs, self.fs, self.block) if self.closed else None
+                obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[ch0:c1],
+                                           window=window)
+                st = ObserverStage(obs, self.latency, self.out[ch0:c1], self.sensed[row0:row0 + n * n_seg],
+                                   self.estimated_amp[ch0:c1])
+                self.observer_stages.append((g.name, st, g, ch0))
+                if self.closed:
+                    self.observers += [(f"{g.name}.{c}", st.channels(c, c + 1), g, ch0 + c) for c in range(n)]
+                else:
+                    self.observers.append((g.name, st, g, ch0))
             ch0, row0 = ch0 + n, row0 + n * n_seg
 
     def _build_control(self, scene):
@@ -272,18 +284,19 @@ class Rig:
         stages.append(Stage("limiter", limit_block,
                             dict(zip(("x", "state", "params", "fade", "counts"), (self.out, *self.limiter.args))),
                             reset=self.limiter.reset))
-        if self.observers:
+        if self.observer_stages:
             from ..selfsense.stage import observe_stage
 
-            control = {id(st): ctl for _, st, ctl in self.controllers}
-            for name, st, _, _ in self.observers:
+            for name, st, _, _ in self.observer_stages:
                 stages.append(Stage(f"observer {name}", observe_stage, st.args, reset=st.reset))
-                ctl = control.get(id(st))
-                if ctl is not None:  # the next block's amplitudes, from this block's estimates
+                # the next block's amplitudes, from this block's estimates of the group's channels
+                for cname, seen, ctl in self.controllers:
+                    if getattr(seen, "stage", seen) is not st:
+                        continue
                     from ..control import amplitude_control
 
-                    stages.append(Stage(f"control {name}", amplitude_control,
-                                        dict(est=st.observer.est, **ctl.args, pending=self.bank.pending,
+                    stages.append(Stage(f"control {cname}", amplitude_control,
+                                        dict(est=seen.observer.est, **ctl.args, pending=self.bank.pending,
                                              lim_counts=self.limiter.counts, ramp=float(self.block)),
                                         reset=ctl.reset))
         stages += [Stage(name, k, dict(enumerate(args)), status) for name, k, args, status in after]

@@ -26,13 +26,14 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan
     u_ref, u_pend, u_chan, u_acc, u_ring : ndarray
         Lock-in of the drive (``LockIn.args``), slots ``(n_ch, n_tones)``.
     i_ref, i_pend, i_chan, i_acc, i_ring : ndarray
-        Lock-in of the sensed currents, rows ``ch * n_seg + seg``, slots ``(n_ch * n_seg, n_tones)``.
+        Lock-in of the sensed currents, rows ``ch * n_seg + seg``, slots ``(n_ch * n_seg, n_tones)``;
+        each row's window that of its channel in the drive's lock-in.
     u_out, i_out : ndarray, shapes (n_ch, n_tones, 2) and (n_ch * n_seg, n_tones, 2)
         Scratch for the lock-ins' amplitude/phase outputs.
     H : ndarray, shape (n_ch, n_tones, n_est, 1 + n_seg, 2)
         Observer matrices (real, imaginary); all zero for an unused tone slot.
-    scale : float
-        ``2 / window``: lock-in sum to phasor.
+    scale : ndarray, shape (n_ch,)
+        ``2 / window`` of each channel: lock-in sum to phasor.
     est : ndarray, shape (n_ch, n_tones, n_est, 2)
         Written: estimate phasors (real, imaginary) over the last complete window.
     wave : ndarray, shape (n_ch, n)
@@ -54,12 +55,13 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan
     n = drive.shape[1]
     status = 0
     for c in range(n_ch):
+        sc = scale[c]
         for s in range(n):
             wave[c, s] = 0.0
         for k in range(n_t):
             us = c * n_t + k
-            dr = scale * u_acc[_SR, us]
-            di = scale * u_acc[_SI, us]
+            dr = sc * u_acc[_SR, us]
+            di = sc * u_acc[_SI, us]
             for e in range(n_est):
                 hr = H[c, k, e, 0, 0]
                 hi = H[c, k, e, 0, 1]
@@ -67,8 +69,8 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan
                 zi = hr * di + hi * dr
                 for j in range(n_seg):
                     js = (c * n_seg + j) * n_t + k
-                    sr = scale * i_acc[_SR, js]
-                    si = scale * i_acc[_SI, js]
+                    sr = sc * i_acc[_SR, js]
+                    si = sc * i_acc[_SI, js]
                     hr = H[c, k, e, 1 + j, 0]
                     hi = H[c, k, e, 1 + j, 1]
                     zr += hr * sr - hi * si

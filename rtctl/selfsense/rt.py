@@ -9,7 +9,7 @@ from rtctl.errors import ModelError
 from rtctl.selfsense import _kernels
 from rtctl.selfsense.observer import EST_NAMES, MAX_COND, N_EST, design
 
-__all__ = ["Observer", "observer_process", "tone_window"]
+__all__ = ["Observer", "ObserverRows", "observer_process", "tone_window", "tone_windows"]
 
 #: ``observer_process(*obs.args, drive, sensed) -> int`` (callable from other numba functions).
 observer_process = _kernels.observer_process
@@ -47,6 +47,19 @@ def tone_window(freqs, fs, hop, max_seconds=1.0) -> int:
     return m_max * hop
 
 
+def tone_windows(freqs, fs, hop, max_seconds=1.0) -> np.ndarray:
+    """:func:`tone_window` of each row's tones alone, shape (n_rows,), int64: per channel, the
+    shortest window over which that channel's own tones leak nothing into one another.
+
+    Examples
+    --------
+    >>> tone_windows([[2.0, 0.0], [245.0, 255.0], [250.0, 0.0]], 48000.0, 32).tolist()
+    [24000, 9600, 192]
+    """
+    f = np.atleast_2d(np.asarray(freqs, dtype=float))
+    return np.array([tone_window(row, fs, hop, max_seconds) for row in f], dtype=np.int64)
+
+
 class Observer:
     """Self-sensing observer for ``n_channels`` identical bimorphs, one block at a time.
 
@@ -55,6 +68,11 @@ class Observer:
     :func:`~rtctl.selfsense.observer.design` applied to those phasors, and the tip deflection
     rebuilt on the block's samples. Run it with ``observer_process(*obs.args, drive, sensed)``
     from a numba block step, or with :meth:`process`.
+
+    The window is one for all channels (whole periods of every tone of the group) or one per
+    channel (whole periods of that channel's own tones: ``window=tone_windows(freqs, fs,
+    block)``); a channel's estimates are then those a one-channel observer on its own tones
+    would give, with the per-call cost of one observer for all of them.
 
     Parameters
     ----------
@@ -68,8 +86,9 @@ class Observer:
         Samples per block (the lock-in hop).
     frontend : FrontEnd, optional
         Drive and sense chain (default: ideal).
-    window : int, optional
-        Lock-in window, samples (default :func:`tone_window` of all tones).
+    window : int or array_like of int, shape (n_channels,), optional
+        Lock-in window, samples, multiples of ``block``: one for all channels, or one per channel
+        (default :func:`tone_window` of all tones).
     image_load : MaxwellLoad, optional
         Load assumed for the aliased images.
     max_cond : float
@@ -82,11 +101,21 @@ class Observer:
 
     Attributes
     ----------
+    window : int
+        The longest channel's window, samples (the window, when it is one for all).
+    windows : ndarray of int64, shape (n_channels,)
+        Each channel's window, samples.
+    scale : ndarray, shape (n_channels,)
+        ``2 / windows``: a lock-in window sum to a phasor, per channel.
     H : ndarray, shape (n_channels, n_tones, N_EST, 1 + n_seg, 2)
     cond : ndarray, shape (n_channels, n_tones)
         Condition number per slot (NaN unused).
     est : ndarray, shape (n_channels, n_tones, N_EST, 2)
         Latest estimates (real, imaginary), rows ``EST_NAMES``.
+    u_out : ndarray, shape (n_channels, n_tones, 2)
+        The drive's amplitude (peak, V) and phase (rad) per tone slot over the same window (NaN
+        for an unused slot); its phasor's window sum is ``lock_u.acc[S_R:S_I + 1, c * n_tones + k]``
+        (times ``scale[c]``).
     wave : ndarray, shape (n_channels, block)
         Latest rebuilt tip deflection, m.
 
@@ -113,9 +142,18 @@ class Observer:
         n_ch, n_t = f.shape
         n_seg = beam.n_seg
         self.n_channels, self.n_tones, self.n_seg = n_ch, n_t, n_seg
-        self.window = int(window) if window else tone_window(f, fs, self.block)
-        if self.window % self.block:
-            raise ModelError(f"window = {self.window} must be a multiple of block = {self.block}")
+        if window is None:
+            window = tone_window(f, fs, self.block)
+        w = np.broadcast_to(np.asarray(window), (n_ch,)) if np.ndim(window) == 0 else np.asarray(window)
+        if w.shape != (n_ch,) or not np.issubdtype(w.dtype, np.integer) or np.any(w < 1):
+            raise ModelError(f"window must be an integer >= 1 or one per channel, shape ({n_ch},); got {window!r}")
+        self.windows = np.array(w, dtype=np.int64)
+        self.window = int(self.windows.max())
+        for c, wc in enumerate(self.windows):
+            if wc % self.block:
+                name = "window" if np.ndim(window) == 0 else f"window[{c}]"
+                raise ModelError(f"{name} = {wc} must be a multiple of block = {self.block}")
+        self.scale = 2.0 / self.windows
         self.H = np.zeros((n_ch, n_t, N_EST, 1 + n_seg, 2))
         self.cond = np.full((n_ch, n_t), np.nan)
         cache = {}
@@ -131,8 +169,9 @@ class Observer:
                 self.H[c, k, :, :, 1] = ob.H.imag
                 self.cond[c, k] = ob.cond
         self.designs = cache
-        self.lock_u = LockIn(n_ch, f, fs, self.window, hop=self.block)
-        self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, self.window, hop=self.block)
+        self.lock_u = LockIn(n_ch, f, fs, self.windows, hop=self.block)
+        self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, np.repeat(self.windows, n_seg),
+                             hop=self.block)
         self.est = np.zeros((n_ch, n_t, N_EST, 2))
         if wave is None:
             wave = np.zeros((n_ch, self.block))
@@ -140,14 +179,14 @@ class Observer:
             raise ModelError(f"wave must be C-contiguous float64 of shape {(n_ch, self.block)}")
         self.wave = wave
         self.wave[...] = 0.0
-        self._u_out = np.zeros((n_ch, n_t, 2))
+        self.u_out = np.zeros((n_ch, n_t, 2))
         self._i_out = np.zeros((n_ch * n_seg, n_t, 2))
 
     @property
     def args(self) -> tuple:
         """Kernel arguments: ``observer_process(*args, drive, sensed)``."""
-        return (*self.lock_u.args, *self.lock_i.args, self._u_out, self._i_out, self.H,
-                2.0 / self.window, self.est, self.wave)
+        return (*self.lock_u.args, *self.lock_i.args, self.u_out, self._i_out, self.H,
+                self.scale, self.est, self.wave)
 
     def process(self, drive, sensed) -> int:
         """Advance by one block.
@@ -195,3 +234,39 @@ class Observer:
     def impedance(self) -> np.ndarray:
         """Online finger impedance per tone, tip force over tip velocity, N s/m (complex)."""
         return self.phasors("tip_force_n") / self.phasors("tip_velocity_m_s")
+
+
+class ObserverRows:
+    """Channels ``c0 .. c1 - 1`` of an :class:`Observer`: what a per-channel consumer (a
+    controller, a report) reads of them, without an observer (and a kernel call) of their own.
+
+    Every array is a view of the observer's own (rows along the first axis of a C-contiguous
+    array, so itself C-contiguous: a stage argument as good as the whole), indexed by channel
+    *within these rows*; ``u_acc`` is the whole drive lock-in's accumulator (its columns
+    interleave channels and tones), read at column ``(first + c) * n_tones + slot``.
+
+    Attributes
+    ----------
+    observer : Observer
+        The observer that computes them.
+    first, n_channels : int
+        ``c0`` and ``c1 - c0``.
+    freqs, windows, scale, H, cond, est, wave, u_out
+        The observer's, rows ``c0:c1`` (``u_out``: the drive's amplitude (peak, V) and phase (rad)
+        per tone slot, shape (n_channels, n_tones, 2)).
+    window : int
+        The longest of these channels' windows, samples.
+    """
+
+    def __init__(self, observer: Observer, c0: int, c1: int):
+        if not 0 <= c0 < c1 <= observer.n_channels:
+            raise ModelError(f"rows {c0}:{c1} of an observer of {observer.n_channels} channels")
+        rows = slice(c0, c1)
+        self.observer, self.first, self.n_channels = observer, int(c0), int(c1 - c0)
+        for name in ("beam", "fs", "block", "frontend", "designs", "n_tones", "n_seg"):
+            setattr(self, name, getattr(observer, name))
+        for name in ("freqs", "windows", "scale", "H", "cond", "est", "wave"):
+            setattr(self, name, getattr(observer, name)[rows])
+        self.u_out = observer.u_out[rows]
+        self.u_acc = observer.lock_u.acc
+        self.window = int(self.windows.max())

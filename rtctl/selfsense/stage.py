@@ -1,5 +1,11 @@
 """The self-sensing stage of the block function: one observed bimorph group per stage.
 
+A group's channels share one stage even when each has a lock-in window of its own (closed-loop
+control: whole periods of the channel's own tones): a stage per channel would repeat per channel
+the call's fixed work (the two lock-ins' bookkeeping, loops that vectorize only across channels),
+about 1.1 us per channel and block against 0.3 us for a channel of a shared stage (48 channels,
+block 32).
+
 Imported only by scenes that observe (``control.observe`` or closed-loop control), so an
 open-loop scene never compiles it. The observer must pair each block of sensed currents with the
 drive that produced them: the backend hands back currents ``L`` blocks after the drive went out
@@ -11,7 +17,7 @@ import numpy as np
 
 from .._numba import kernel
 from ..safety import ESTIMATE_NONFINITE
-from .rt import observer_process
+from .rt import ObserverRows, observer_process
 
 
 @kernel
@@ -73,3 +79,18 @@ class ObserverStage:
         self.delay[...] = 0.0
         self.head[0] = 0
         self.amp[...] = 0.0
+
+    def channels(self, c0: int, c1: int) -> "ObserverChannels":
+        """Channels ``c0 .. c1 - 1`` of this stage (indices within its group)."""
+        return ObserverChannels(self, c0, c1)
+
+
+class ObserverChannels:
+    """Some channels of an :class:`ObserverStage`, for a consumer that is per channel (one
+    controller per channel): ``observer`` is an :class:`~rtctl.selfsense.rt.ObserverRows` of
+    them, ``stage`` the stage that runs them (it alone is in the stage list and resets them)."""
+
+    def __init__(self, stage: ObserverStage, c0: int, c1: int):
+        self.stage = stage
+        self.observer = ObserverRows(stage.observer, c0, c1)
+        self.amp = stage.amp[c0:c1]
