@@ -435,6 +435,15 @@ def _lockin_demod(ref, chan, acc, x, j0, m, ramping):
 
 
 @kernel
+def _run_end(acc, s0):
+    """One past the last slot of the run from ``s0`` whose windows are ``s0``'s."""
+    s1 = s0 + 1
+    while s1 < acc.shape[1] and acc[NHOP, s1] == acc[NHOP, s0]:
+        s1 += 1
+    return s1
+
+
+@kernel
 def _lockin_hop(ref, acc, ring, hop_index):
     """Close hop ``hop_index`` (count since reset, 0-based): move its partial sums into the window.
 
@@ -446,9 +455,7 @@ def _lockin_hop(ref, acc, ring, hop_index):
     s0 = 0
     while s0 < ns:
         nh = acc[NHOP, s0]
-        s1 = s0 + 1
-        while s1 < ns and acc[NHOP, s1] == nh:
-            s1 += 1
+        s1 = _run_end(acc, s0)
         n_hops = max(1, int(nh))  # >= 1 from LockIn; guarded so a zeroed acc cannot raise
         idx = hop_index % n_hops
         wrap = idx == n_hops - 1
@@ -485,9 +492,7 @@ def _lockin_estimate(ref, acc):
     s0 = 0
     while s0 < ns:
         nh = acc[NHOP, s0]
-        s1 = s0 + 1
-        while s1 < ns and acc[NHOP, s1] == nh:
-            s1 += 1
+        s1 = _run_end(acc, s0)
         scale = 2.0 / (nh * acc[HOP, 0])
         for s in range(s0, s1):
             if ref[INC1, s] > 0.0:
