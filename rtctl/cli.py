@@ -71,7 +71,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="output directory (default out/SCENE_NAME); a run replaces the trace/, summary.json "
                         "and plot.png of an earlier run there (with --no-plot its plot.png is removed) and "
                         "leaves every other file alone")
-    r.add_argument("--realtime", action="store_true", help="pace blocks to the wall clock and count deadline misses")
+    r.add_argument("--realtime", action="store_true",
+                   help="pace blocks to the wall clock, count deadline misses, and ask the OS for SCHED_FIFO "
+                        "(timing.priority), mlockall and a CPU (timing.cpu); a refused request is one line, "
+                        "and the run goes on")
     r.add_argument("--no-plot", action="store_true", help="skip plot.png")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -92,13 +95,15 @@ def _parser() -> argparse.ArgumentParser:
     _tool(sub, "sweep", "design sweep on Dask: model, reach, selfsense or run over the product of --vary values "
           "(SCENE --vary KEY=SPEC ...)", "rtctl.cli:_sweep_main")
     b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`, "
-                       "`bench control`",
+                       "`bench control`, `bench realtime`",
                        description="benchmarks (the loop's own speed: make bench)")
     bsub = b.add_subparsers(dest="bench", required=True)
     _tool(bsub, "numerics", "work-precision report and the stability cases", "rtctl.numerics.cli:main")
     _tool(bsub, "render", "HIA update and preprocessing times per rendering method", "rtctl.render.bench:main_bench")
     _tool(bsub, "control", "closed-loop error and settle time against block size, with the real-time factor",
           "rtctl.engine.bench_control:main")
+    _tool(bsub, "realtime", "the paced loop's deadline misses and wake-up lateness against cyclictest, under "
+          "an optional load", "rtctl.engine.bench_realtime:main")
     _name_choices(bsub)
     e = sub.add_parser("emulate", help="run a scene's simulated display as a device: `emulate audio SCENE` "
                        "(a JACK client) or `emulate serial SCENE` (a pin controller behind a pseudo-terminal)",

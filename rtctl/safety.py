@@ -51,6 +51,7 @@ LIMIT_DUTY = 2048
 XRUN_BURST = 4096
 CONTROL_SATURATED = 8192
 CONTROL_FROZEN = 16384
+TRACE_DROPPED = 32768  # a trace placeholder: the loop dropped this block's record (ring full)
 
 #: Status bits that end a run (outputs fade to zero first).
 FAULTS = NONFINITE | OVERTEMP | PLANT_NONFINITE | DEVICE_LOST | XRUN_BURST
@@ -71,6 +72,7 @@ STATUS_NAMES = {
     XRUN_BURST: "audio xrun burst (more than io.xrun_limit under/overflows within io.xrun_window)",
     CONTROL_SATURATED: "amplitude control saturated (a target needs more than the channel's max_voltage)",
     CONTROL_FROZEN: "amplitude control frozen (no usable estimate: drive held, never raised)",
+    TRACE_DROPPED: "trace record dropped (the trace ring was full; the block itself ran)",
 }
 
 # limiter state rows: last output V, temperature, fade start V, running means (see below)

@@ -1,10 +1,14 @@
 """Run traces: one fixed-size record per block, appended in chunks.
 
 A trace is a directory with ``trace.json`` (the layout: record dtype, signal names, units,
-channel names, fs, block) and ``blocks.bin`` (records back to back). The writer keeps a
-preallocated chunk of records and appends it to the file when full, on :meth:`TraceWriter.flush`
-and on close, so Ctrl-C or an exception keeps every finished block readable; the reader maps the
-file and ignores a trailing partial record, so even a killed process leaves a readable trace.
+channel names, fs, block, and ``dropped_records``) and ``blocks.bin`` (records back to back, one
+per block). The writer keeps a preallocated chunk of records and appends it to the file when
+full, on :meth:`TraceWriter.flush` and on close, so Ctrl-C or an exception keeps every finished
+block readable; the reader maps the file and ignores a trailing partial record, so even a killed
+process leaves a readable trace. A paced run hands whole records over from its loop thread
+(:mod:`rtctl.engine.ring`) and they are appended as they are (:meth:`TraceWriter.append`); a
+record the loop had to drop (its ring full) is written as a placeholder (:meth:`TraceWriter.gap`:
+NaN data, status ``TRACE_DROPPED``), and ``dropped_records`` counts them.
 
 >>> import tempfile
 >>> d = tempfile.mkdtemp()
@@ -61,7 +65,9 @@ class TraceWriter:
         self._buf = np.zeros(chunk, dtype=self.dtype)
         self._n = 0
         self.blocks = 0
-        layout = {
+        self.dropped = 0
+        self._gap = None
+        self._layout = layout = {
             "format": "rtctl-trace-1",
             "dtype": [list(f) if len(f) == 2 else [f[0], f[1], list(f[2])] for f in fields],
             "units": {name: spec[0] for name, spec in signals.items()},
@@ -70,6 +76,7 @@ class TraceWriter:
             "block": block,
             "channels": list(channels),
             "meta": meta or {},
+            "dropped_records": 0,
         }
         (self.path / "trace.json").write_text(json.dumps(layout, indent=1))
         self._f = open(self.path / "blocks.bin", "wb")
@@ -84,6 +91,32 @@ class TraceWriter:
         self.blocks += 1
         return rec
 
+    def append(self, records: np.ndarray) -> None:
+        """Append whole records (of :attr:`dtype`, their ``block`` fields already set) after
+        the buffered ones."""
+        self.flush()
+        self._f.write(memoryview(records).cast("B"))
+        self.blocks += len(records)
+
+    def gap(self, n: int) -> None:
+        """Append ``n`` placeholder records for blocks that have no record (dropped): NaN data,
+        status ``TRACE_DROPPED``; counted in ``trace.json`` as ``dropped_records``."""
+        if n <= 0:
+            return
+        if self._gap is None:
+            from .safety import TRACE_DROPPED
+
+            self._gap = np.zeros(1, dtype=self.dtype)
+            for name in self.dtype.names[2:]:
+                self._gap[name] = np.nan
+            self._gap["status"] = TRACE_DROPPED
+        self.flush()
+        for _ in range(n):
+            self._gap["block"] = self.blocks
+            self._f.write(memoryview(self._gap).cast("B"))
+            self.blocks += 1
+        self.dropped += n
+
     def flush(self) -> None:
         """Append the buffered records to the file."""
         if self._n:
@@ -96,6 +129,9 @@ class TraceWriter:
             self.flush()
             os.fsync(self._f.fileno())
             self._f.close()
+            if self.dropped:
+                self._layout["dropped_records"] = self.dropped
+                (self.path / "trace.json").write_text(json.dumps(self._layout, indent=1))
 
     def __enter__(self):
         return self
@@ -125,6 +161,8 @@ class TraceReader:
         self.block = int(self.layout["block"])
         self.channels = self.layout["channels"]
         self.units = self.layout["units"]
+        #: placeholder records (status ``TRACE_DROPPED``) in place of records the loop dropped
+        self.dropped = int(self.layout.get("dropped_records", 0))
 
     def signal(self, name: str, row: int | None = None) -> np.ndarray:
         """A per-sample signal as float64 ``(rows, n_blocks * block)``, or a per-block one as

@@ -369,8 +369,11 @@ def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> N
     n = n_run_blocks * reader.block
     t = reader.time()[:n]
     has_tip = "tip_um" in reader.units
-    fig = plt.figure(figsize=(11, 2.0 * len(shown) + 3.2), layout="constrained")
-    gs = fig.add_gridspec(len(shown) + 1, 2, height_ratios=[1] * len(shown) + [1.6])
+    from .timing_plot import has_timing, timing_panels
+
+    paced = has_timing(reader)  # a paced run: a last row of block-time and lateness histograms
+    fig = plt.figure(figsize=(11, 2.0 * len(shown) + 3.2 + 2.4 * paced), layout="constrained")
+    gs = fig.add_gridspec(len(shown) + 1 + paced, 2, height_ratios=[1] * len(shown) + [1.6] + [1.4] * paced)
     for i, (ch, r) in enumerate(zip(chosen, shown)):
         ax = fig.add_subplot(gs[i, 0])
         ax.plot(*_envelope(t, reader.signal("drive", ch)[:n]), lw=0.6, color="C0")
@@ -395,7 +398,9 @@ def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> N
             for a in fig.axes[-2:] if (r.get("controlled") or has_tip) else fig.axes[-1:]:
                 a.axvline(ev["at"], color="C3", lw=0.8, alpha=0.7)
     ax.set_xlabel("time s")
-    cx = fig.add_subplot(gs[-1, :])
+    cx = fig.add_subplot(gs[len(shown), :])
+    if paced:
+        timing_panels(fig.add_subplot(gs[-1, 0]), fig.add_subplot(gs[-1, 1]), summary, reader, n_run_blocks)
     x = np.arange(len(rows))
     true = [r["true_um"] or np.nan for r in rows]
     thr = [r["threshold_um"] or np.nan for r in rows]

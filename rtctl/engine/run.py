@@ -3,9 +3,10 @@
 Per block the engine calls the backend's ``read`` (sensed currents, one block late as on an
 audio interface), the rig's ``@njit`` block step (synthesis and the final limiter over
 preallocated arrays) and the backend's ``write`` (for the ``sim`` backend this advances the
-simulated plant). Python decides between blocks: scheduled parameter changes, faults, pacing and
-the trace. On a fault or Ctrl-C every output fades to zero over one block before the run ends,
-and the trace keeps every finished block.
+simulated plant); the polled backends' loop is :mod:`rtctl.engine.loop` (its thread runs the
+blocks and nothing else: the trace and the progress bar are another thread's). On a fault or
+Ctrl-C every output fades to zero over one block before the run ends, and the trace keeps every
+finished block.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import _numba, safety
+from .loop import LATE_FIELD, Loop, fault_message
+from .pace import wake_stats
 
 
 @dataclass
@@ -66,8 +69,9 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         Where ``trace/``, ``summary.json`` and ``plot.png`` go, replacing an earlier run's (its
         plot.png is removed even when this run writes none); nothing is written without it.
     realtime : bool
-        Pace blocks to the wall clock and count deadline misses; otherwise run as fast as
-        possible and report the real-time factor.
+        Pace blocks to the wall clock, count deadline misses and ask the OS for a real-time
+        loop (:mod:`rtctl.engine.realtime`); otherwise run as fast as possible and report the
+        real-time factor (a device whose clock paces the loop is paced either way).
     report : bool
         The per-channel rows (and plot.png) from the trace; a caller that reads the trace itself
         (the calibration's excitation) leaves them out.
@@ -92,23 +96,32 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     fs, block = rig.fs, rig.block
     n_blocks = max(1, math.ceil(scene.timing.duration * fs / block))
     out = Path(out_dir) if out_dir is not None else None
+    dev = rig.device
+    # Paced to the wall clock: asked for, or the device's clock is the wall's (hardware). Real
+    # time: paced, or clocked by the device itself (read() waits for its buffers); then nothing
+    # may make the loop wait, a full trace ring included.
+    paced = realtime or dev.paced
+    strict = paced or dev.clocked
     writer = None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         _remove_earlier_run(out)
-        writer = TraceWriter(out / "trace", rig.trace_signals(), fs, block, rig.channel_names,
+        signals = rig.trace_signals()
+        if paced and not dev.callback:
+            signals[LATE_FIELD] = ("us", 1, 0)
+        writer = TraceWriter(out / "trace", signals, fs, block, rig.channel_names,
                              meta={"scene": scene.to_dict(), "source": scene.source,
                                    "overrides": list(scene.overrides), "sensed_rows": rig.sensed_names,
                                    "latency_blocks": scene.io.latency_blocks or int(rig.device.latency_blocks)})
     times = np.zeros(n_blocks)
+    lates = np.zeros(n_blocks)
+    missed = np.zeros(n_blocks, dtype=np.bool_)
     faults: list[str] = []
     bar = _Progress(n_blocks, progress)
     period = block / fs
-    dev = rig.device
-    if getattr(dev, "paced", False):
-        realtime = True  # hardware: the device's clock is the clock
-    t_start = time.perf_counter()
-    if getattr(dev, "callback", False):
+    timing = {}
+    if dev.callback:
+        t_start = time.perf_counter()
         run_blocks, status_seen, interrupted = _run_callback(rig, writer, n_blocks, times, faults, bar)
         wall = time.perf_counter() - t_start
         if writer is not None:
@@ -116,8 +129,15 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         dev.close()
         misses = int(dev.stats().get("late_blocks", 0))
     else:
-        run_blocks, status_seen, interrupted, misses, wall = _run_polled(
-            rig, writer, n_blocks, times, faults, bar, realtime, t_start)
+        loop = Loop(rig, writer, bar, paced, strict, realtime, scene.timing)
+        res = loop.run(n_blocks, times, lates, missed, faults)
+        run_blocks, status_seen, interrupted, wall = res.blocks, res.status_seen, res.interrupted, res.wall
+        misses = res.late_wakeups + res.overruns
+        timing = {"late_wakeups": res.late_wakeups, "overruns": res.overruns, "trace_dropped": res.dropped}
+        if paced:
+            timing.update(wake_stats(lates[:run_blocks], missed[:run_blocks]))
+        if res.os:
+            timing["realtime"] = res.os
     bt = times[:run_blocks] if run_blocks else np.zeros(1)
     summary = {
         "scene": scene.scene.name,
@@ -126,13 +146,9 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         "backend": scene.io.backend,
         "duration_s": run_blocks * period,
         "realtime_factor": (run_blocks * period / wall) if wall > 0 else math.inf,
-        "block_time_us": {
-            "p50": float(np.percentile(bt, 50)),
-            "p99": float(np.percentile(bt, 99)),
-            "p999": float(np.percentile(bt, 99.9)),
-            "max": float(bt.max()),
-        },
+        "block_time_us": _percentiles(bt),
         "deadline_misses": misses,
+        **timing,
         "faults": faults,
         "warnings": [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
         "build_s": build_s,
@@ -165,6 +181,11 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     return RunResult(summary, interrupted, out)
 
 
+def _percentiles(x: np.ndarray) -> dict:
+    return {"p50": float(np.percentile(x, 50)), "p99": float(np.percentile(x, 99)),
+            "p999": float(np.percentile(x, 99.9)), "max": float(x.max())}
+
+
 def _stderr(text: str) -> None:
     print(f"rtctl: {text}", file=sys.stderr)
 
@@ -179,17 +200,6 @@ def _remove_earlier_run(out: Path) -> None:
     scene, beside its own summary. Only the names a run writes go; other files stay."""
     for name in RUN_FILES:
         (out / name).unlink(missing_ok=True)
-
-
-def _fault_message(rig, k, status, period) -> str:
-    what = safety.describe(status & safety.FAULTS)
-    if status & (safety.DEVICE_LOST | safety.XRUN_BURST):
-        err = rig.device.stats().get("error") if hasattr(rig.device, "stats") else None
-        if err:  # the backend's own words replace the generic name of its fault bit
-            own = {safety.STATUS_NAMES[safety.DEVICE_LOST]: f"I/O device lost: {err}",
-                   safety.STATUS_NAMES[safety.XRUN_BURST]: f"audio xrun burst: {err}"}
-            what = [own.get(w, w) for w in what]
-    return f"at {k * period:.4f} s: " + "; ".join(what) + "; outputs faded to 0 V"
 
 
 def _run_callback(rig, writer, n_blocks, times, faults, bar):
@@ -211,7 +221,7 @@ def _run_callback(rig, writer, n_blocks, times, faults, bar):
         times[k] = snaps.compute_us[slot]
         st["seen"] |= status
         if status & safety.FAULTS:
-            faults.append(_fault_message(rig, k + 1, status, period))
+            faults.append(fault_message(rig, k + 1, status, period))
             st["run"], st["stopping"] = k + 1, True
             return True
         if k + 1 >= n_blocks:
@@ -231,62 +241,9 @@ def _run_callback(rig, writer, n_blocks, times, faults, bar):
         bar.close()
     if status & safety.FAULTS and not faults:
         done = min(dev.snaps.done, n_blocks)
-        faults.append(_fault_message(rig, done, status, period))
+        faults.append(fault_message(rig, done, status, period))
         st["run"] = done
     if interrupted:
         st["run"] = min(dev.snaps.done, n_blocks)
     st["seen"] |= status
     return st["run"], st["seen"], interrupted
-
-
-def _run_polled(rig, writer, n_blocks, times, faults, bar, realtime, t_start):
-    """The engine's thread runs each block: read, step, write, trace. Returns ``(blocks run,
-    status seen, interrupted, deadline misses, wall seconds)``."""
-    block, fs = rig.block, rig.fs
-    period = block / fs
-    status_seen, misses, interrupted, k, run_blocks = 0, 0, False, 0, n_blocks
-    try:
-        while k < n_blocks:
-            rig.apply_schedule(k)
-            t0 = time.perf_counter_ns()
-            status = rig.advance()
-            t1 = time.perf_counter_ns()
-            times[k] = (t1 - t0) * 1e-3
-            if realtime:
-                deadline = t_start + (k + 1) * period
-                now = time.perf_counter()
-                if now > deadline:
-                    misses += 1
-                    status |= safety.DEADLINE_MISSED
-                else:
-                    time.sleep(deadline - now)
-            status_seen |= status
-            if writer is not None:
-                rig.record(writer.next(), status, times[k])
-            k += 1
-            if status & safety.FAULTS:
-                faults.append(_fault_message(rig, k, status, period))
-                run_blocks = k
-                break
-            bar.update(k)
-    except KeyboardInterrupt:
-        interrupted = True
-        run_blocks = k
-    finally:
-        bar.close()
-        wall = time.perf_counter() - t_start
-        # Whatever happened, fade every output to zero (one block, longer if the slew limit
-        # needs it), recording the fade blocks.
-        rig.limiter.shutdown(block)
-        while True:
-            status = rig.advance()
-            if writer is not None:
-                rig.record(writer.next(), status, 0.0)
-            if rig.limiter.done:
-                break
-        if writer is not None:
-            writer.close()
-        if rig.device is not None and hasattr(rig.device, "close"):
-            rig.device.close()
-    return run_blocks, status_seen, interrupted, misses, wall
-

@@ -146,6 +146,9 @@ class Backend:
         The device's thread runs the block function (``run(rig, n_blocks, on_block)``, ``bind``).
     paced : bool
         The device's (or the wall) clock sets the pace: the polled engine sleeps to real time.
+    clocked : bool
+        The device's own clock paces the loop (``read`` waits for its buffers): the loop must
+        not wait on anything else, so a full trace ring drops records instead.
     latency_blocks : int
         Blocks from a drive block going out to the currents it caused coming back.
     truth : ndarray or None
@@ -159,6 +162,7 @@ class Backend:
 
     callback = False
     paced = False
+    clocked = False
     latency_blocks = 1
     truth = None
     probe_names: tuple = ()

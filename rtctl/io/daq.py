@@ -47,6 +47,7 @@ class DaqBackend(Backend):
 
     callback = False
     paced = False  # read() blocks on the hardware clock: the device paces the loop
+    clocked = True
     truth = None
     probe_names = ()
 
