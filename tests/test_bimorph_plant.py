@@ -36,7 +36,7 @@ def fe():
 
 @pytest.fixture(scope="module")
 def finger():
-    # A three-branch finger as in REFERENCES.md (tau ~ 4 ms, 70 ms, 1.4 s); values are test data.
+    # A three-branch finger as in docs/references.md (Pawluk & Howe; tau ~ 4 ms, 70 ms, 1.4 s); values are test data.
     return MaxwellLoad(1e-4, 300.0, ((300.0, 0.004), (150.0, 0.07), (80.0, 1.4)))
 
 

@@ -29,7 +29,7 @@ from rtctl.plant.bimorph import realization
 from rtctl.plant.switching import SwitchedSimGroup, load_map
 
 FS, BLOCK = 48000.0, 32
-# Two Maxwell sets of one finger, test data: as rested (REFERENCES.md's three branches) and
+# Two Maxwell sets of one finger, test data: as rested (the three branches of docs/references.md) and
 # pressing harder (stiffer, heavier, two branches).
 A = MaxwellLoad(1e-4, 300.0, ((300.0, 0.004), (150.0, 0.07), (80.0, 1.4)))
 B = MaxwellLoad(2e-4, 700.0, ((500.0, 0.003), (200.0, 0.05)))

@@ -110,7 +110,7 @@ def test_audio_run_reaches_the_sim_amplitudes(audio_run):
     # sim reads each block's currents one block late; JACK's cycle adds one more block
     assert all(0.5 < lag < 2.5 for lag in lags), lags
     # the observer, pairing each current block with the drive two blocks before it, estimates
-    # the tip from the audio round trip as the simulation's truth says (issue 4 target: 1 %).
+    # the tip from the audio round trip as the simulation's truth says (within 1 %).
     # An xrun puts a glitch into the lock-in window (0.5 s here) that the observer, working on a
     # ~7 % motional share of the current, magnifies (4.7 % at 250 Hz / 1 V seen once): the
     # comparison needs a clean run, and says so when it did not get one.

@@ -71,7 +71,7 @@ def test_zoh_held_pulse_is_exact():
 
 
 class TestSineInputModel:
-    """REFERENCES.md (Numerics): a sampled 250 Hz sine at 48 kHz through a lightly damped mode.
+    """docs/references.md (numerics): a sampled 250 Hz sine at 48 kHz through a lightly damped mode.
 
     Truth: ``solve_ivp`` (DOP853, rtol 1e-12; the mode is not stiff and Radau takes 25x longer)
     with the continuous sine. Expectations derived
