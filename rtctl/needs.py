@@ -73,6 +73,8 @@ def needs(scene) -> Needs:
         sines = sum(t.shape == "sine" for t in st.tones)
         if sines:
             need["dsp.oscillator"] = f"stimulus.kind = 'tones' ({sines} sine tone(s))"
+        elif st.play:
+            need["dsp.oscillator"] = f"stimulus.play ({len(st.play)} signal(s))"
         if len(st.tones) > sines:
             need["dsp.pulse"] = f"stimulus.tones with shape square/pulse ({len(st.tones) - sines})"
     elif st.kind == "braille":

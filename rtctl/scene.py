@@ -307,6 +307,10 @@ def _item_name(x: Any, i: int) -> str:
 
 def _value(spec: Key, v: Any, path: str, origin: str) -> Any:
     kind = spec.kind
+    if kind == "strs":
+        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+            raise _fail(origin, path, v, "must be a list of strings")
+        return list(v)
     if kind in ("floats", "ints"):
         if not isinstance(v, list):
             raise _fail(origin, path, v, f"must be a list of {'numbers' if kind == 'floats' else 'integers'}")
@@ -397,8 +401,43 @@ def _cross_checks(s: dict, origin: str) -> None:
             raise _fail(origin, f"{p}.beat", tone["beat"], f"must be below 2 * freq ({2 * tone['freq']:g} Hz)")
         if tone["start"] >= t["duration"]:
             raise _fail(origin, f"{p}.start", tone["start"], f"after the end of the run ({t['duration']:g} s)")
+    _play_checks(s, names, origin)
     if s["events"]:
         event_states(s, origin)
+
+
+def _play_checks(s: dict, names: list, origin: str) -> None:
+    """``stimulus.play`` names signals, groups and spatial items that exist (the signals
+    themselves compile when the stimulus is built)."""
+    from .spatial import check
+
+    st = s["stimulus"]
+    signals = [x["name"] for x in st["signals"]]
+    spatial = [x["name"] for x in st["spatial"]]
+    for i, sp in enumerate(st["spatial"]):
+        if sp["actuator"] and sp["actuator"] not in names:
+            raise _fail(origin, f"stimulus.spatial.{i}.actuator", sp["actuator"],
+                        f"no such actuator group (have {', '.join(names)})")
+        bad = check(sp, f"stimulus.spatial.{i}")
+        if bad:
+            raise SceneError(f"{origin}: {bad}")
+    for i, pl in enumerate(st["play"]):
+        p = f"stimulus.play.{i}"
+        if st["kind"] != "tones":
+            raise _fail(origin, f"{p}.signal", pl["signal"], f"signals play with stimulus.kind = 'tones', not "
+                        f"{st['kind']!r}")
+        if pl["signal"] not in signals:
+            raise _fail(origin, f"{p}.signal", pl["signal"],
+                        f"no such stimulus.signals item (have {', '.join(signals) or 'none'})")
+        if pl["spatial"] and pl["spatial"] not in spatial:
+            raise _fail(origin, f"{p}.spatial", pl["spatial"],
+                        f"no such stimulus.spatial item (have {', '.join(spatial) or 'none'})")
+        if pl["actuator"] and pl["actuator"] not in names:
+            raise _fail(origin, f"{p}.actuator", pl["actuator"], f"no such actuator group (have {', '.join(names)})")
+        if not pl["spatial"]:
+            grid = s["actuator"][names.index(pl["actuator"] or names[0])]["grid"]
+            if pl["channel"] >= grid[0] * grid[1]:
+                raise _fail(origin, f"{p}.channel", pl["channel"], f"the group has channels 0..{grid[0] * grid[1] - 1}")
 
 
 # ----------------------------------------------------------------------------- events

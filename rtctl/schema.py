@@ -20,7 +20,7 @@ class Key:
     """One scalar or list key.
 
     ``kind`` is one of ``float``, ``int``, ``str``, ``bool``, ``floats`` (list of numbers),
-    ``ints`` (list of integers), ``table`` (free keys; checked by the code that reads it).
+    ``ints`` (list of integers), ``strs`` (list of strings), ``table`` (free keys; checked by the code that reads it).
     ``lo``/``hi`` bound numbers (and every list element);
     ``open_lo`` excludes ``lo``. ``choices`` restricts strings. ``length`` fixes a list length.
     """
@@ -304,6 +304,91 @@ TONE = Table(
     many=True,
 )
 
+SIGNAL = Table(
+    {
+        "name": Key("str", REQUIRED, "", "name other signals and `stimulus.play` use"),
+        "type": Key("str", REQUIRED, "", "sources: sine, square, saw (band-limited: `harmonics`), chirp (linear "
+                    "`freq` -> `freq_end`), noise (random-phase multisine in `band`), dc (a level); envelopes "
+                    "(levels 0..1 times `amp`): asr, adsr, breakpoints, fade (exponential); combinations of the "
+                    "signals named in `of`: sum, product (amplitude modulation; lasts as long as its shortest "
+                    "factor), sequence (one after another, `gap` apart), repeat (`of` `count` times)",
+                    choices=("sine", "square", "saw", "chirp", "noise", "dc", "asr", "adsr", "breakpoints", "fade",
+                             "sum", "product", "sequence", "repeat")),
+        "amp": Key("float", 1.0, "V | um", "peak amplitude (noise: a sine's of the same RMS; an envelope's peak): "
+                   "volts open loop, um of tip displacement closed loop (see `stimulus.play.unit`); give "
+                   "factors of a product 1 and the carrier the level", 0.0, 1e5),
+        "freq": Key("float", 0.0, "Hz", "frequency (chirp: at its start)", 0.0, 1e5),
+        "freq_end": Key("float", 0.0, "Hz", "chirp: frequency at its end", 0.0, 1e5),
+        "phase": Key("float", 0.0, "deg", "phase of the cosine at the signal's start", -1e6, 1e6),
+        "duration": Key("float", 0.0, "s", "how long a source (or fade) lasts; 0 = the whole run", 0.0, 86400.0),
+        "harmonics": Key("int", 15, "", "square, saw: highest harmonic kept (and below fs / 2)", 1, 1000),
+        "band": Key("floats", (100.0, 400.0), "Hz", "noise: its band", 0.0, 1e5, length=2),
+        "components": Key("int", 32, "", "noise: sines in the multisine", 1, 4096),
+        "seed": Key("int", 0, "", "noise: seed of its frequencies and phases", 0, 2**63 - 1),
+        "attack": Key("float", 0.0, "s", "asr, adsr: rise from 0 to the peak", 0.0, 86400.0),
+        "decay": Key("float", 0.0, "s", "adsr: fall from the peak to `level`", 0.0, 86400.0),
+        "level": Key("float", 1.0, "", "adsr: sustain level, fraction of the peak", 0.0, 1.0),
+        "sustain": Key("float", 0.0, "s", "asr, adsr: hold", 0.0, 86400.0),
+        "release": Key("float", 0.0, "s", "asr, adsr: fall to 0", 0.0, 86400.0),
+        "times": Key("floats", (), "s", "breakpoints: times from 0, in order", 0.0, 86400.0, max_items=10000),
+        "levels": Key("floats", (), "", "breakpoints: level at each time (straight lines between)", 0.0, 1e3,
+                      max_items=10000),
+        "curve": Key("str", "smooth", "", "asr, adsr, breakpoints: each stage a raised cosine (smooth, drawn in "
+                     "32 straight pieces: no click) or a straight line (linear)", choices=("smooth", "linear")),
+        "tau": Key("float", 0.05, "s", "fade: time constant", 0.0, 3600.0, open_lo=True),
+        "direction": Key("str", "out", "", "fade: out (1 -> 0, exp(-t / tau)) or in (0 -> 1, the charging curve)",
+                         choices=("in", "out")),
+        "of": Key("strs", (), "", "sum, product, sequence, repeat: the signals they combine, by name"),
+        "gap": Key("float", 0.0, "s", "sequence, repeat: silence between items (negative: overlap)", -86400.0,
+                   86400.0),
+        "count": Key("int", 2, "", "repeat: how many times", 1, 100000),
+    },
+    "named signals (docs/stimulus.md): sources, envelopes and their sums, products and sequences; "
+    "`stimulus.play` puts them on channels",
+    many=True,
+)
+
+PLAY = Table(
+    {
+        "signal": Key("str", REQUIRED, "", "name of a `stimulus.signals` item"),
+        "actuator": Key("str", "", "", "actuator group (default: the first; with `spatial`, the spatial's)"),
+        "channel": Key("int", 0, "", "channel index in the group, row-major from 0 (unless `spatial`)", 0, 4095),
+        "spatial": Key("str", "", "", "name of a `stimulus.spatial` item: the signal on every channel of its "
+                       "group, times that channel's gain"),
+        "start": Key("float", 0.0, "s", "when the signal starts", 0.0, 86400.0),
+        "unit": Key("str", "auto", "", "what the signal's amplitudes are: V (open loop), um (closed loop: tip "
+                    "amplitude targets), threshold (closed loop: multiples of the receptor's perception threshold "
+                    "at each tone's frequency, raised by `db`); auto = V open loop, um closed loop",
+                    choices=("auto", "V", "um", "threshold")),
+        "db": Key("float", 0.0, "dB", "unit = threshold: level over the threshold", -60.0, 80.0),
+        "receptor": Key("str", "auto", "", "unit = threshold: the receptor (auto: by frequency)",
+                        choices=("auto", "pacinian", "meissner", "merkel", "ruffini")),
+    },
+    "signals put on channels",
+    many=True,
+)
+
+SPATIAL = Table(
+    {
+        "name": Key("str", REQUIRED, "", "name `stimulus.play` uses"),
+        "actuator": Key("str", "", "", "actuator group the source moves over (default: the first)"),
+        "radius": Key("float", 1.0, "pitch | m", "distance at which the gain reaches 0", 0.0, 1e6, open_lo=True),
+        "rolloff": Key("str", "linear", "", "gain against distance", choices=("linear", "smoothstep", "log", "table")),
+        "table": Key("floats", (), "", "rolloff = table: gains at d / radius = 0 ... 1, evenly spaced", 0.0, 1.0,
+                     max_items=1000),
+        "times": Key("floats", (0.0,), "s", "way-point times, in order", 0.0, 86400.0, min_items=1, max_items=100000),
+        "x": Key("floats", (0.0,), "pitch | m", "way-point positions along a row (column index)", -1e6, 1e6,
+                 min_items=1, max_items=100000),
+        "y": Key("floats", (0.0,), "pitch | m", "way-point positions down a column (row index)", -1e6, 1e6,
+                 min_items=1, max_items=100000),
+        "pitch": Key("floats", (0.0, 0.0), "m", "channel pitch along a row and down a column; [0, 0] = positions "
+                     "and radius in pitches", 0.0, 1.0, length=2),
+        "rate": Key("float", 200.0, "Hz", "gain updates per second (straight lines between)", 1.0, 1e5),
+    },
+    "virtual sources moving over a group (the spatializer): each channel's gain from its distance",
+    many=True,
+)
+
 SCENE = Table(
     {
         "scene": Table(
@@ -377,6 +462,11 @@ SCENE = Table(
                 "kind": Key("str", "tones", "", "what drives the channels", choices=("image", "tones", "braille", "shape")),
                 "method": Key("str", "tones", "", "rendering method", choices=("roi", "canny", "frequency", "beat", "tones")),
                 "tones": TONE,
+                "signals": SIGNAL,
+                "play": PLAY,
+                "spatial": SPATIAL,
+                "ramp": Key("float", 0.02, "s", "a played signal that starts or stops at a level other than 0 "
+                            "fades in and out over this long along a raised cosine (half its length at most)", 0.0, 60.0, open_lo=True),
                 "actuator": Key("str", "", "", "group an image/Braille/shape is shown on (default: the first)"),
                 "voltage": Key("float", 0.0, "V", "drive of an up pin / full amplitude (image, braille, shape); 0 = the group's max_voltage", 0.0, 2000.0),
                 "image": Key("str", "", "", "image file rendered when kind = 'image' (relative to the scene file)"),

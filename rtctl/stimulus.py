@@ -110,15 +110,26 @@ class Stimulus:
             self._schedule.setdefault(kb, []).extend(zip(range(len(freqs), len(freqs) + len(fr)), am))
             chans += [ch] * len(fr)
             freqs += fr
+        phases = [0.0] * len(freqs)
+        self.target_hook = None  # see apply()
+        self._sig_schedule: dict[int, list] = {}
+        self._target_schedule: dict[int, list] = {}
+        self.closed_voices: list[int] = []  # bank tones of closed-loop voices (under control)
+        if scene.stimulus.play:
+            self._add_voices(scene, offsets, tones, chans, freqs, phases)
         self.tones = tones
         self.targets_um = np.full(self.n_channels, np.nan)
         for tone in tones:
             self.targets_um[tone.channel] = tone.target_m * 1e6
+        for i in self.closed_voices:  # until its envelope starts
+            self.targets_um[chans[i]] = 0.0
         self.targets_um0 = self.targets_um.copy()  # as the scene starts (events change targets_um)
         self.bank = None
         if freqs:
+            if not scene_tones:
+                from .dsp import OscillatorBank
             self.bank = OscillatorBank(self.n_channels, np.array(chans), self.fs, np.array(freqs),
-                                       np.zeros(len(freqs)), ramp=self.block)
+                                       np.zeros(len(freqs)), np.array(phases), ramp=self.block)
         self.pulses = None
         self.render = None
         self._pulse_schedule: dict[int, list] = {}
@@ -133,14 +144,50 @@ class Stimulus:
             for ch, (kb, f, duty, high, low) in pulses.items():
                 self._pulse_schedule.setdefault(kb, []).append((ch, f, duty, high, low))
 
+    def _add_voices(self, scene, offsets, tones, chans, freqs, phases) -> None:
+        """``stimulus.play``: one bank tone per voice (:mod:`rtctl.voices`), with its schedule."""
+        from .dsp._kernels import MAX_RAMP
+        from .voices import build, schedule, target_schedule
+
+        n_run = float(round(scene.timing.duration * self.fs))
+        n_blocks = int(math.ceil(n_run / self.block))
+        for v, closed, receptor in build(scene, offsets, self.fs, n_run, MAX_RAMP, self.block):
+            i = len(freqs)
+            f0 = float(v.freq[0])
+            receptor = receptor or perception.auto_receptor(f0) if f0 > 0 else receptor
+            thr = perception.threshold_m(f0, receptor) if receptor else math.nan
+            on = np.nonzero(v.amp > 0.0)[0]
+            start = float(v.x[max(on[0] - 1, 0)]) / self.fs
+            peak = float(v.amp.max())
+            tones.append(Tone(v.channel, f0, 0.0, 0.0 if closed else peak, receptor, thr,
+                              peak if closed else math.nan, start, (f0,)))
+            self.bank_index.append((i,))
+            chans.append(v.channel)
+            freqs.append(f0)
+            phases.append(v.phase % (2 * math.pi))
+            if closed:
+                self.closed_voices.append(i)
+                parts = target_schedule(v, i, self.block, n_blocks)
+                dest = self._target_schedule
+            else:
+                parts = schedule(v, i, self.block)
+                dest = self._sig_schedule
+            for kb, items in parts.items():
+                dest.setdefault(kb, []).extend(items)
+
     def apply(self, k: int) -> None:
         """The parameter changes due at block ``k`` (ramped across that block), through the
         banks' :meth:`route` when the engine set one. A tone under amplitude control starts
-        through ``start_hook(bank tone index)`` instead (it returns True for such tones)."""
+        through ``start_hook(bank tone index)`` instead (it returns True for such tones); a
+        closed-loop voice's target changes go to ``target_hook(bank tone index, target m)``."""
         for i, amp in self._schedule.get(k, ()):
             if self.start_hook is not None and self.start_hook(i):
                 continue
             self.bank.set(i, amp=amp)
+        for i, f, amp, r in self._sig_schedule.get(k, ()):
+            self.bank.set(i, freq=f, amp=amp, ramp=r)
+        for i, target_m in self._target_schedule.get(k, ()):
+            self.target_hook(i, target_m)
         for ch, f, duty, high, low in self._pulse_schedule.get(k, ()):
             self.pulses.set(ch, freq=f, duty=duty, high=high, low=low)
         if self.render is not None:
@@ -276,6 +323,37 @@ class RenderStage:
         self._shown = -1
         if self._frames is None:
             self.player.index = -1
+
+    def _add_voices(self, scene, offsets, tones, chans, freqs, phases) -> None:
+        """``stimulus.play``: one bank tone per voice (:mod:`rtctl.voices`), with its schedule."""
+        from .dsp._kernels import MAX_RAMP
+        from .voices import build, schedule, target_schedule
+
+        n_run = float(round(scene.timing.duration * self.fs))
+        n_blocks = int(math.ceil(n_run / self.block))
+        for v, closed, receptor in build(scene, offsets, self.fs, n_run, MAX_RAMP, self.block):
+            i = len(freqs)
+            f0 = float(v.freq[0])
+            receptor = receptor or perception.auto_receptor(f0) if f0 > 0 else receptor
+            thr = perception.threshold_m(f0, receptor) if receptor else math.nan
+            on = np.nonzero(v.amp > 0.0)[0]
+            start = float(v.x[max(on[0] - 1, 0)]) / self.fs
+            peak = float(v.amp.max())
+            tones.append(Tone(v.channel, f0, 0.0, 0.0 if closed else peak, receptor, thr,
+                              peak if closed else math.nan, start, (f0,)))
+            self.bank_index.append((i,))
+            chans.append(v.channel)
+            freqs.append(f0)
+            phases.append(v.phase % (2 * math.pi))
+            if closed:
+                self.closed_voices.append(i)
+                parts = target_schedule(v, i, self.block, n_blocks)
+                dest = self._target_schedule
+            else:
+                parts = schedule(v, i, self.block)
+                dest = self._sig_schedule
+            for kb, items in parts.items():
+                dest.setdefault(kb, []).extend(items)
 
     def apply(self, k: int) -> None:
         """Write the parameter changes due at block ``k``."""

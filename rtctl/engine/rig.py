@@ -96,6 +96,11 @@ class Rig:
             self._build_observers(scene)
         if self.closed:
             self._build_control(scene)
+            loose = [i for i in self.stimulus.closed_voices if i not in self.controlled]
+            if loose:
+                ch = self.channel_names[self.bank.chan[loose[0]]]
+                raise SceneError(f"{scene.source}: stimulus.play: channel {ch} plays a tip target but is not "
+                                 "under amplitude control (bimorph groups with self-sensing only)")
         self.events, self._events_at = [], {}
         if scene.get("events"):
             from ..events import schedule
@@ -226,6 +231,18 @@ class Rig:
         self.queue.post(self.queue.target_id(ctl.target), ENABLE, j, 1.0)
         return True
 
+    def _target_controlled(self, i: int, target_m: float) -> None:
+        """A closed-loop voice's new target (bank tone ``i``): 0 switches it off (ramped to
+        silence), a target from 0 switches it on under control."""
+        from ..control._kernels import ENABLE, TARGET
+
+        ctl, j = self.controlled[i]
+        tid = self.queue.target_id(ctl.target)
+        if target_m > 0.0:
+            self.queue.post(tid, TARGET, j, target_m)
+        self.queue.post(tid, ENABLE, j, 1.0 if target_m > 0.0 else 0.0)
+        self.targets_um[self.bank.chan[i]] = target_m * 1e6
+
     def _build_limiter(self, scene):
         from ..safety import Limiter
 
@@ -260,6 +277,7 @@ class Rig:
                                 + list(self.device.event_targets()))
         if self.controllers:
             self.stimulus.start_hook = self._start_controlled
+            self.stimulus.target_hook = self._target_controlled
         for x in (self.bank, self.pulses):
             if x is not None:
                 tid = self.queue.target_id(x.pending)
