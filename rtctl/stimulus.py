@@ -115,6 +115,7 @@ class Stimulus:
         self._sig_schedule: dict[int, list] = {}
         self._target_schedule: dict[int, list] = {}
         self.closed_voices: list[int] = []  # bank tones of closed-loop voices (under control)
+        self.voices: list = []  # (Voice, closed, receptor) per stimulus.play partial and channel
         if scene.stimulus.play:
             self._add_voices(scene, offsets, tones, chans, freqs, phases)
         self.tones = tones
@@ -151,7 +152,8 @@ class Stimulus:
 
         n_run = float(round(scene.timing.duration * self.fs))
         n_blocks = int(math.ceil(n_run / self.block))
-        for v, closed, receptor in build(scene, offsets, self.fs, n_run, MAX_RAMP, self.block):
+        self.voices = build(scene, offsets, self.fs, n_run, MAX_RAMP, self.block)
+        for v, closed, receptor in self.voices:
             i = len(freqs)
             f0 = float(v.freq[0])
             receptor = receptor or perception.auto_receptor(f0) if f0 > 0 else receptor
@@ -331,7 +333,8 @@ class RenderStage:
 
         n_run = float(round(scene.timing.duration * self.fs))
         n_blocks = int(math.ceil(n_run / self.block))
-        for v, closed, receptor in build(scene, offsets, self.fs, n_run, MAX_RAMP, self.block):
+        self.voices = build(scene, offsets, self.fs, n_run, MAX_RAMP, self.block)
+        for v, closed, receptor in self.voices:
             i = len(freqs)
             f0 = float(v.freq[0])
             receptor = receptor or perception.auto_receptor(f0) if f0 > 0 else receptor
