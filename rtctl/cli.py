@@ -78,6 +78,21 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--no-plot", action="store_true", help="skip plot.png")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    pl = sub.add_parser("play", help="play an .ahap or .haptic pattern on a scene's display",
+                        description="play an .ahap (Core Haptics) or .haptic (Meta Haptics Studio) pattern on a "
+                                    "scene's display, mapped by the scene's stimulus.pattern (docs/stimulus.md)")
+    pl.add_argument("pattern", metavar="PATTERN", help=".ahap or .haptic file")
+    pl.add_argument("--scene", required=True, metavar="SCENE", help="scene file or bundled scene name")
+    pl.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a scene key, e.g. --set stimulus.pattern.channel=3 (repeatable)")
+    pl.add_argument("--json", action="store_true", help="print one JSON object")
+    pl.add_argument("--duration", type=float, metavar="S",
+                    help="override timing.duration (default: the scene's, or longer to hold the pattern)")
+    pl.add_argument("--out", metavar="DIR", help="output directory (default out/SCENE_NAME-PATTERN)")
+    pl.add_argument("--no-plot", action="store_true", help="skip plot.png")
+    pl.add_argument("--quiet", action="store_true", help="no progress bar")
+    pl.set_defaults(func=_play, realtime=False)
+
     s = sub.add_parser("scenes", help="list the bundled scenes", description="list the bundled scenes")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=_scenes)
@@ -287,12 +302,25 @@ def _calibrate(args) -> int:
     return 0
 
 
+def _play(args) -> int:
+    from .play import pattern_scene
+
+    s, warnings = pattern_scene(args.pattern, args.scene, args.overrides, args.duration)
+    for w in warnings:
+        print(f"rtctl: warning: {w}", file=sys.stderr)
+    out = args.out or os.path.join("out", f"{s.scene.name}-{os.path.splitext(os.path.basename(args.pattern))[0]}")
+    return _run_scene(s, out, args)
+
+
 def _run(args) -> int:
+    s = _load(args)
+    return _run_scene(s, args.out or os.path.join("out", s.scene.name), args)
+
+
+def _run_scene(s, out, args) -> int:
     from .engine.report import print_table
     from .engine.run import run
 
-    s = _load(args)
-    out = args.out or os.path.join("out", s.scene.name)
     result = run(s, out_dir=out, realtime=args.realtime, plot=not args.no_plot,
                  progress=not (args.quiet or args.json))
     if args.json:

@@ -13,6 +13,10 @@ class SceneError(RtctlError, ValueError):
     """A scene file or a ``--set`` override is invalid: names the key, the value and what is allowed."""
 
 
+class PatternError(RtctlError, ValueError):
+    """A haptic pattern file (.ahap, .haptic) cannot be read: names the file, the item and the fix."""
+
+
 class ModelError(RtctlError, ValueError):
     """A physical model cannot be built or is numerically unsafe (e.g. ill-conditioned)."""
 

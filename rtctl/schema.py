@@ -319,6 +319,8 @@ SIGNAL = Table(
                    "factors of a product 1 and the carrier the level", 0.0, 1e5),
         "freq": Key("float", 0.0, "Hz", "frequency (chirp: at its start)", 0.0, 1e5),
         "freq_end": Key("float", 0.0, "Hz", "chirp: frequency at its end", 0.0, 1e5),
+        "freqs": Key("floats", (), "Hz", "chirp: frequency at each of `times` instead (straight between, held after)",
+                     0.0, 1e5, max_items=10000),
         "phase": Key("float", 0.0, "deg", "phase of the cosine at the signal's start", -1e6, 1e6),
         "duration": Key("float", 0.0, "s", "how long a source (or fade) lasts; 0 = the whole run", 0.0, 86400.0),
         "harmonics": Key("int", 15, "", "square, saw: highest harmonic kept (and below fs / 2)", 1, 1000),
@@ -330,7 +332,7 @@ SIGNAL = Table(
         "level": Key("float", 1.0, "", "adsr: sustain level, fraction of the peak", 0.0, 1.0),
         "sustain": Key("float", 0.0, "s", "asr, adsr: hold", 0.0, 86400.0),
         "release": Key("float", 0.0, "s", "asr, adsr: fall to 0", 0.0, 86400.0),
-        "times": Key("floats", (), "s", "breakpoints: times from 0, in order", 0.0, 86400.0, max_items=10000),
+        "times": Key("floats", (), "s", "breakpoints (and a chirp's `freqs`): times from 0, in order", 0.0, 86400.0, max_items=10000),
         "levels": Key("floats", (), "", "breakpoints: level at each time (straight lines between)", 0.0, 1e3,
                       max_items=10000),
         "curve": Key("str", "smooth", "", "asr, adsr, breakpoints: each stage a raised cosine (smooth, drawn in "
@@ -387,6 +389,22 @@ SPATIAL = Table(
     },
     "virtual sources moving over a group (the spatializer): each channel's gain from its distance",
     many=True,
+)
+
+PATTERN = Table(
+    {
+        "actuator": Key("str", "", "", "group a pattern plays on (default: the first)"),
+        "channel": Key("int", 0, "", "channel it plays on (unless `spatial`)", 0, 4095),
+        "spatial": Key("str", "", "", "name of a `stimulus.spatial` item to play it through instead"),
+        "full": Key("float", 0.0, "V | um", "amplitude at intensity 1: volts open loop, tip um closed loop; 0 = half the "
+                    "group's max_voltage open loop (a transient on a full continuous event stays within it), the receptor's threshold raised by control.margin_db closed loop",
+                    0.0, 1e5),
+        "band": Key("floats", (80.0, 300.0), "Hz", "frequency at sharpness (AHAP) or frequency (.haptic) 0 and 1, "
+                    "straight between", 0.0, 1e5, length=2),
+        "transient_s": Key("float", 0.03, "s", "how long a transient (AHAP HapticTransient, .haptic emphasis) lasts",
+                           0.001, 10.0),
+    },
+    "how `rtctl play` maps an .ahap or .haptic pattern onto the display (docs/stimulus.md)",
 )
 
 SCENE = Table(
@@ -465,6 +483,7 @@ SCENE = Table(
                 "signals": SIGNAL,
                 "play": PLAY,
                 "spatial": SPATIAL,
+                "pattern": PATTERN,
                 "ramp": Key("float", 0.02, "s", "a played signal that starts or stops at a level other than 0 "
                             "fades in and out over this long along a raised cosine (half its length at most)", 0.0, 60.0, open_lo=True),
                 "actuator": Key("str", "", "", "group an image/Braille/shape is shown on (default: the first)"),

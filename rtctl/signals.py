@@ -273,7 +273,7 @@ class Signals:
 
     def _source(self, name, s):
         kind, amp, f = s["type"], s["amp"], s["freq"]
-        d = self._duration(name, s, need=kind == "chirp")
+        d = self._duration(name, s, need=kind == "chirp" and not s["freqs"])
         ph = math.radians(s["phase"])
         nyq = self.fs / 2
         if kind == "dc":
@@ -287,9 +287,16 @@ class Signals:
             fr, phs = rng.uniform(lo, hi, m), rng.uniform(0.0, 2 * math.pi, m)
             c = amp / math.sqrt(m)  # the multisine's RMS is a sine's of amplitude amp
             return [Partial(float(p), const(x), const(c), 0.0, d) for x, p in zip(fr, phs)], d
-        if f <= 0.0:
+        if f <= 0.0 and not (kind == "chirp" and s["freqs"]):
             raise self._fail(name, "freq", f, f"a {kind} needs a frequency above 0 Hz")
-        if kind == "chirp":
+        if kind == "chirp" and s["freqs"]:
+            t, fr = list(s["times"]), list(s["freqs"])
+            if len(t) != len(fr) or t[0] != 0.0 or any(b < a for a, b in zip(t, t[1:])):
+                raise self._fail(name, "freqs", fr, f"needs one frequency per time ({len(t)}), times from 0 in order")
+            if min(fr) <= 0.0 or max(fr) >= nyq:
+                raise self._fail(name, "freqs", fr, f"must be in (0, fs / 2 = {nyq:g}) Hz")
+            ft, f = Track(np.array([self.samples(q) for q in t]), np.array(fr, float)), fr[0]
+        elif kind == "chirp":
             f1 = s["freq_end"]
             if not 0.0 < f1 < nyq:
                 raise self._fail(name, "freq_end", f1, f"must be in (0, fs / 2 = {nyq:g}) Hz")

@@ -1,0 +1,33 @@
+"""``rtctl play``: a haptic pattern file turned into a scene's stimulus."""
+
+from __future__ import annotations
+
+from . import patterns
+from . import scene as sc
+from .errors import SceneError
+
+
+def pattern_scene(pattern: str, source: str, overrides=(), duration: float | None = None):
+    """The scene ``source`` (with ``overrides``) playing ``pattern`` instead of its own stimulus,
+    and the pattern's warnings (ignored keys, clamped values). The run lasts the scene's
+    duration, or longer to hold the whole pattern, or ``duration`` when given."""
+    pat = patterns.load(pattern)
+    s = sc.load(source, list(overrides))
+    data = s.to_dict()
+    st = data["stimulus"]
+    if st["kind"] != "tones":
+        raise SceneError(f"{s.source}: stimulus.kind = {st['kind']!r}: a pattern plays on a tones scene")
+    m = s.stimulus.pattern
+    group = s.group(m.actuator or s.actuator[0].name)
+    signals, play = patterns.to_stimulus(pat, m, s.control.mode == "closed", s.timing.fs, group.max_voltage,
+                                         s.control.margin_db)
+    # the scene's own tones give way to the pattern, and so do events that re-target them
+    tied = [i for i, ev in enumerate(data["events"]) if any(k.startswith("stimulus.tones") for k in
+                                                            sc.event_keys(ev["set"]))]
+    if tied:
+        raise SceneError(f"{s.source}: events.{tied[0]} changes a tone of the scene, which the pattern replaces")
+    st.update(tones=[], signals=signals, play=play)
+    tail = m.transient_s + st["ramp"] + 0.05
+    t = data["timing"]
+    t["duration"] = duration if duration is not None else max(t["duration"], pat.end + tail)
+    return sc.Scene(sc.validate(data, s.source), s.source, s.overrides), pat.warnings

@@ -1,0 +1,112 @@
+"""Haptic pattern files (.ahap, .haptic): what is read, what is warned, clamped and refused, and
+`rtctl play` on a closed-loop (targets in um) and an open-loop (volts) scene."""
+
+import json
+
+import numpy as np
+import pytest
+from test_cli import run_cli
+
+from rtctl import patterns
+from rtctl.errors import PatternError
+from rtctl.play import pattern_scene
+from rtctl.stimulus import Stimulus
+
+
+def test_heartbeat_ahap_reads_as_two_transients_and_a_curved_continuous_event():
+    p = patterns.load("heartbeat.ahap")
+    assert p.warnings == []
+    assert p.transients == [(0.05, 1.0, 0.3), (0.30, 0.7, 0.3)]
+    (t0, times, levels, _, sharps), = p.continuous
+    assert t0 == 0.6
+    np.testing.assert_allclose(times, [0.0, 0.2, 0.6], atol=1e-12)
+    np.testing.assert_allclose(levels, [0.8 * 0.3, 0.8 * 1.0, 0.8 * 0.2])  # intensity x its control curve
+    np.testing.assert_allclose(sharps, 0.6)
+
+
+def test_swell_haptic_reads_its_envelopes_and_an_emphasis_transient():
+    p = patterns.load("swell.haptic")
+    assert p.warnings == []
+    assert p.transients == [(0.25, 1.0, 0.8)]
+    (t0, times, levels, ftimes, fv), = p.continuous
+    np.testing.assert_allclose(times, [0.0, 0.25, 0.6, 0.8])
+    np.testing.assert_allclose(levels, [0.0, 0.9, 0.4, 0.0])
+    np.testing.assert_allclose(np.interp([0.0, 0.4, 0.8], ftimes, fv), [0.2, 0.45, 0.7])
+
+
+def _amp_at(st, channel, t):
+    return sum(float(np.interp(t * 48000, v.x, v.amp)) for v, _, _ in st.voices if v.channel == channel)
+
+
+def test_open_loop_plays_intensity_times_half_max_voltage_at_the_sharpness_frequency():
+    """pvdf-6x8 (max_voltage 500 V): full = 250 V; sharpness 0.6 -> 80 + 0.6 (300 - 80) = 212 Hz."""
+    s, warnings = pattern_scene("heartbeat.ahap", "pvdf-6x8", ["stimulus.pattern.channel=19"])
+    assert warnings == [] and s.timing.duration == 1.3  # the pattern's end + a transient, a ramp, 50 ms
+    st = Stimulus(s, {"cells": 0}, 48, 48000.0, 32)
+    assert _amp_at(st, 19, 0.8) == pytest.approx(0.8 * 1.0 * 250.0, abs=1e-9)
+    assert _amp_at(st, 19, 0.7) == pytest.approx(0.8 * (0.3 + 0.7 * 0.5) * 250.0, abs=1e-9)
+    assert _amp_at(st, 19, 0.05 + 0.03 / 4) == pytest.approx(1.0 * 250.0, abs=1e-9)  # the first beat's peak
+    assert {round(v.freq[0], 9) for v, _, _ in st.voices} == {80 + 0.3 * 220, 80 + 0.6 * 220}
+
+
+def test_closed_loop_plays_tip_targets_at_fixed_frequencies():
+    """line-bimorph-5-closed: full = 0 -> the receptor threshold + margin_db (6 dB) per tone; the
+    .haptic frequency envelope is held at its first value, and a warning says so."""
+    s, warnings = pattern_scene("swell.haptic", "line-bimorph-5-closed", ["stimulus.pattern.full=10"])
+    assert len(warnings) == 1 and "closed loop holds it at 124 Hz" in warnings[0]
+    st = Stimulus(s, {"lateral": 0}, 5, 48000.0, 32)
+    assert all(closed for _, closed, _ in st.voices)
+    assert all(np.ptp(v.freq) == 0.0 for v, _, _ in st.voices)
+    # targets in m: amplitude 0.9 of full = 10 um at 0.25 s, plus the emphasis bump's peak there
+    cont = [v for v, _, _ in st.voices if v.freq[0] == pytest.approx(124.0)]
+    assert float(np.interp(0.25 * 48000, cont[0].x, cont[0].amp)) == pytest.approx(9e-6, rel=1e-12)
+
+
+def _write(tmp_path, name, obj):
+    p = tmp_path / name
+    p.write_text(obj if isinstance(obj, str) else json.dumps(obj))
+    return str(p)
+
+
+def test_unknown_keys_are_warned_and_out_of_range_values_clamped_and_reported(tmp_path):
+    f = _write(tmp_path, "odd.ahap", {"Version": 1, "Colour": "red", "Pattern": [
+        {"Event": {"Time": 0.1, "EventType": "HapticTransient", "Wobble": 3,
+                   "EventParameters": [{"ParameterID": "HapticIntensity", "ParameterValue": 1.5},
+                                       {"ParameterID": "AttackTime", "ParameterValue": 0.1}]}},
+        {"Event": {"Time": 0.2, "EventType": "AudioCustom"}}]})
+    p = patterns.load(f)
+    assert p.transients == [(0.1, 1.0, 0.5)]  # clamped to 1; Core Haptics' default sharpness 0.5
+    text = "\n".join(p.warnings)
+    for words in (".Colour: not used", "Pattern[0].Event.Wobble: not used",
+                  "EventParameters[0].ParameterValue (HapticIntensity) = 1.5 is outside [0, 1]: clamped to 1",
+                  "'AttackTime': not used",
+                  "'AudioCustom': not a haptic event"):
+        assert words in text
+
+
+@pytest.mark.parametrize("name, content, words", [
+    ("a.ahap", "{not json", "not valid JSON"),
+    ("a.ahap", {"Version": 1}, "missing 'Pattern'"),
+    ("a.ahap", {"Pattern": [{"Event": {"Time": "soon", "EventType": "HapticTransient"}}]}, "must be a finite number"),
+    ("a.ahap", {"Pattern": []}, "no haptic events"),
+    ("a.haptic", {"version": {"major": 2}, "signals": {}}, "only version 1"),
+    ("a.haptic", {"version": {"major": 1}, "signals": {"continuous": {"envelopes": {"amplitude": [
+        {"time": 0.5, "amplitude": 1}, {"time": 0.1, "amplitude": 0}]}}}}, "in time order"),
+    ("a.wav", "RIFF", "not a pattern file"),
+])
+def test_malformed_patterns_are_refused_in_one_line_exit_2(capsys, tmp_path, name, content, words):
+    f = _write(tmp_path, name, content)
+    with pytest.raises(PatternError):
+        patterns.load(f)
+    code, out, err = run_cli(capsys, "play", f, "--scene", "pvdf-6x8")
+    assert code == 2 and words in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+@pytest.mark.parametrize("pattern, scene_name, more", [("heartbeat.ahap", "line-bimorph-5-closed", ()),
+                                                       ("swell.haptic", "pvdf-6x8", ("--duration", "1.0"))])
+def test_play_runs_with_the_usual_summary_and_trace(capsys, tmp_path, pattern, scene_name, more):
+    code, out, err = run_cli(capsys, "play", pattern, "--scene", scene_name, "--out", str(tmp_path), "--json",
+                             "--no-plot", *more)
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["scene"] == scene_name and (tmp_path / "trace").is_dir()
