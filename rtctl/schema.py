@@ -294,7 +294,9 @@ TONE = Table(
         "voltage": Key("float", REQUIRED, "V", "open-loop drive amplitude (peak; a beat pair's envelope peak)", 0.0, 2000.0),
         "beat": Key("float", 0.0, "Hz", "beat frequency f_b: tones at f_c -+ f_b/2 (0 = single tone)", 0.0, 1000.0),
         "receptor": Key("str", "auto", "", "receptor the tone addresses (auto: the one with the largest threshold whose band holds freq)", choices=("auto", "pacinian", "meissner", "merkel", "ruffini")),
-        "start": Key("float", 0.0, "s", "switch-on time (ramped over one block)", 0.0, 86400.0),
+        "start": Key("float", 0.0, "s", "switch-on time (ramped over `ramp`)", 0.0, 86400.0),
+        "ramp": Key("float", 0.0, "s", "sine tones: how long the switch-on ramp lasts, in samples rounded, whatever "
+                    "the block; 0 = one block (as before: at block 1 a tone starts in one sample)", 0.0, 60.0),
         "shape": Key("str", "sine", "", "waveform: sine (oscillator, ramped); square (+-voltage, 50 % duty); "
                      "pulse (0 / voltage at `duty`, for coil pins)", choices=("sine", "square", "pulse")),
         "duty": Key("float", 0.5, "", "fraction of each cycle at `voltage` (shape pulse)", 0.0, 1.0),

@@ -75,6 +75,7 @@ class Stimulus:
         scene_tones = scene.stimulus.tones if scene.stimulus.kind == "tones" else ()
         if scene_tones:
             from .dsp import OscillatorBank, beat_tones
+            from .dsp._kernels import MAX_RAMP
         pulses = {}  # channel -> (block, freq, duty, high, low): square and pulse tones
         for i, t in enumerate(scene_tones):
             ch = offsets[t.actuator] + t.channel
@@ -106,8 +107,11 @@ class Stimulus:
                 fr, am = (t.freq,), (t.voltage,)
             tones.append(Tone(ch, t.freq, t.beat, t.voltage, receptor, thr, tgt, t.start, fr))
             self.bank_index.append(tuple(range(len(freqs), len(freqs) + len(fr))))
-            # Every tone switches on ramped over one block at the block holding its start time.
-            self._schedule.setdefault(kb, []).extend(zip(range(len(freqs), len(freqs) + len(fr)), am))
+            # Every tone switches on at the block holding its start time, ramped over t.ramp
+            # (samples, whatever the block) or, by default, over that block.
+            r = max(1, min(int(round(t.ramp * self.fs)), MAX_RAMP)) if t.ramp > 0 else None
+            first = len(freqs)
+            self._schedule.setdefault(kb, []).extend((first + j, a, r) for j, a in enumerate(am))
             chans += [ch] * len(fr)
             freqs += fr
         phases = [0.0] * len(freqs)
@@ -182,10 +186,10 @@ class Stimulus:
         banks' :meth:`route` when the engine set one. A tone under amplitude control starts
         through ``start_hook(bank tone index)`` instead (it returns True for such tones); a
         closed-loop voice's target changes go to ``target_hook(bank tone index, target m)``."""
-        for i, amp in self._schedule.get(k, ()):
+        for i, amp, ramp in self._schedule.get(k, ()):
             if self.start_hook is not None and self.start_hook(i):
                 continue
-            self.bank.set(i, amp=amp)
+            self.bank.set(i, amp=amp, ramp=ramp)
         for i, f, amp, r in self._sig_schedule.get(k, ()):
             self.bank.set(i, freq=f, amp=amp, ramp=r)
         for i, target_m in self._target_schedule.get(k, ()):
@@ -325,38 +329,6 @@ class RenderStage:
         self._shown = -1
         if self._frames is None:
             self.player.index = -1
-
-    def _add_voices(self, scene, offsets, tones, chans, freqs, phases) -> None:
-        """``stimulus.play``: one bank tone per voice (:mod:`rtctl.voices`), with its schedule."""
-        from .dsp._kernels import MAX_RAMP
-        from .voices import build, schedule, target_schedule
-
-        n_run = float(round(scene.timing.duration * self.fs))
-        n_blocks = int(math.ceil(n_run / self.block))
-        self.voices = build(scene, offsets, self.fs, n_run, MAX_RAMP, self.block)
-        for v, closed, receptor in self.voices:
-            i = len(freqs)
-            f0 = float(v.freq[0])
-            receptor = receptor or perception.auto_receptor(f0) if f0 > 0 else receptor
-            thr = perception.threshold_m(f0, receptor) if receptor else math.nan
-            on = np.nonzero(v.amp > 0.0)[0]
-            start = float(v.x[max(on[0] - 1, 0)]) / self.fs
-            peak = float(v.amp.max())
-            tones.append(Tone(v.channel, f0, 0.0, 0.0 if closed else peak, receptor, thr,
-                              peak if closed else math.nan, start, (f0,)))
-            self.bank_index.append((i,))
-            chans.append(v.channel)
-            freqs.append(f0)
-            phases.append(v.phase % (2 * math.pi))
-            if closed:
-                self.closed_voices.append(i)
-                parts = target_schedule(v, i, self.block, n_blocks)
-                dest = self._target_schedule
-            else:
-                parts = schedule(v, i, self.block)
-                dest = self._sig_schedule
-            for kb, items in parts.items():
-                dest.setdefault(kb, []).extend(items)
 
     def apply(self, k: int) -> None:
         """Write the parameter changes due at block ``k``."""

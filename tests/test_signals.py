@@ -263,4 +263,24 @@ def test_tone_scenes_build_the_bank_they_always_did():
     st = Stimulus(s, {"lateral": 0}, 5, FS, 32)
     assert st.bank.n_tones == 5 and not st._sig_schedule and not st.closed_voices
     np.testing.assert_array_equal(st.bank.phase, np.zeros(5))
-    assert st._schedule == {0: [(i, v) for i, v in enumerate((140.0, 140.0, 40.0, 30.0, 1.0))]}
+    assert st._schedule == {0: [(i, v, None) for i, v in enumerate((140.0, 140.0, 40.0, 30.0, 1.0))]}
+
+
+def test_a_tone_ramp_in_seconds_is_the_same_at_every_block_size():
+    """tones.N.ramp = 5 ms: 240 samples of straight ramp at block 1 and at block 32, not one block."""
+    outs = []
+    for block in (1, 32):
+        s = scene.load("line-bimorph-5", ["stimulus.tones.4.ramp=0.005", f"timing.block={block}"])
+        st = Stimulus(s, {"lateral": 0}, 5, FS, block)
+        st.reset()
+        out = np.zeros((5, 480))
+        for k in range(480 // block):
+            st.apply(k)
+            blk = np.zeros((5, block))
+            st.bank.process(blk)
+            out[:, k * block:(k + 1) * block] = blk
+        outs.append(out[4])
+    m = np.arange(480)
+    want = np.minimum((m + 1) / 240, 1.0) * np.cos(2 * np.pi * 250.0 * m / FS)
+    close(outs[0], want, 1.0)
+    close(outs[1], want, 1.0)
