@@ -22,6 +22,7 @@ VARIANTS = {
     "solenoid-3x3": ["stimulus.kind=image", "stimulus.method=frequency", f"stimulus.image={PHOTO}"],
     "dot-4x4": ["stimulus.kind=image", "stimulus.method=canny", f"stimulus.image={PHOTO}", "stimulus.speed=2000.0"],
     "sma-8x8": ["stimulus.kind=braille", "stimulus.text=hi", "stimulus.frame_s=0.5"],
+    "array-bimorph-5x5": ["stimulus.kind=shape", "stimulus.shape=ring", "stimulus.play=[]", "stimulus.voltage=100.0"],
     "bimodal-4x4": ["stimulus.kind=shape", "stimulus.shape=cross", "stimulus.actuator=normal", "stimulus.voltage=3.0"],
 }
 
