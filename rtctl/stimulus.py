@@ -192,8 +192,9 @@ class Stimulus:
             self.bank.set(i, amp=amp, ramp=ramp)
         for i, f, amp, r in self._sig_schedule.get(k, ()):
             self.bank.set(i, freq=f, amp=amp, ramp=r)
-        for i, target_m in self._target_schedule.get(k, ()):
-            self.target_hook(i, target_m)
+        if self.target_hook is not None:  # the rig sets it whenever there are closed-loop voices
+            for i, target_m in self._target_schedule.get(k, ()):
+                self.target_hook(i, target_m)
         for ch, f, duty, high, low in self._pulse_schedule.get(k, ()):
             self.pulses.set(ch, freq=f, duty=duty, high=high, low=low)
         if self.render is not None:
