@@ -110,3 +110,18 @@ def test_play_runs_with_the_usual_summary_and_trace(capsys, tmp_path, pattern, s
     assert code == 0, err
     summary = json.loads(out)
     assert summary["scene"] == scene_name and (tmp_path / "trace").is_dir()
+
+
+def test_a_pattern_plays_through_a_virtual_source():
+    """stimulus.pattern.spatial: the heartbeat on array-bimorph-5x5's sweep reaches only the middle
+    row, and at 0.6 s (source between columns 2 and 3) channels 12 and 13 share its level."""
+    s, _ = pattern_scene("heartbeat.ahap", "array-bimorph-5x5", ["stimulus.pattern.spatial=sweep",
+                                                                  "stimulus.pattern.full=100"])
+    st = Stimulus(s, {"array": 0}, 25, 48000.0, 32)
+    assert {v.channel for v, _, _ in st.voices} == {10, 11, 12, 13, 14}
+    # at 0.625 s (a gain update, past the 20 ms fade-in) the source is at column 2.625 and the
+    # intensity curve at 0.3 + 0.7 * 0.025 / 0.2 of the event's 0.8
+    t = 0.625
+    level = 0.8 * (0.3 + 0.7 * 0.025 / 0.2) * 100.0
+    assert _amp_at(st, 12, t) == pytest.approx(level * 0.375, abs=1e-9)
+    assert _amp_at(st, 13, t) == pytest.approx(level * 0.625, abs=1e-9)
