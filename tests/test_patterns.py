@@ -102,8 +102,9 @@ def test_malformed_patterns_are_refused_in_one_line_exit_2(capsys, tmp_path, nam
     assert code == 2 and words in err and err.count("\n") == 1 and "Traceback" not in err
 
 
-@pytest.mark.parametrize("pattern, scene_name, more", [("heartbeat.ahap", "line-bimorph-5-closed", ()),
-                                                       ("swell.haptic", "pvdf-6x8", ("--duration", "1.0"))])
+@pytest.mark.parametrize("pattern, scene_name, more", [
+    ("heartbeat.ahap", "line-bimorph-5-closed", ()), ("swell.haptic", "line-bimorph-5-closed", ()),
+    ("heartbeat.ahap", "pvdf-6x8", ()), ("swell.haptic", "pvdf-6x8", ("--duration", "1.0"))])
 def test_play_runs_with_the_usual_summary_and_trace(capsys, tmp_path, pattern, scene_name, more):
     code, out, err = run_cli(capsys, "play", pattern, "--scene", scene_name, "--out", str(tmp_path), "--json",
                              "--no-plot", *more)

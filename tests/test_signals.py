@@ -104,6 +104,33 @@ play = [{signal = "am", channel = 0}]
     close(out[0], want, 10.0)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_random_products_of_sums_are_the_products_of_the_cosines(seed):
+    """(a1 + a2) x b x c with random frequencies, amplitudes and phases: the product-to-sum
+    expansion (up to 12 tones) against the direct product of the factors, evaluated naively."""
+    rng = np.random.default_rng(seed)
+    f = rng.uniform(20.0, 400.0, 4)
+    a = rng.uniform(0.2, 3.0, 4)
+    ph = rng.uniform(-180.0, 180.0, 4)
+    items = ",\n".join(f'  {{name = "s{i}", type = "sine", freq = {f[i]:.17g}, amp = {a[i]:.17g}, '
+                       f'phase = {ph[i]:.17g}}}' for i in range(4))
+    stim = f"""
+signals = [
+{items},
+  {{name = "sum", type = "sum", of = ["s0", "s1"]}},
+  {{name = "p", type = "product", of = ["sum", "s2", "s3"]}},
+]
+play = [{{signal = "p", channel = 1}}]
+"""
+    out, _ = render(stim, duration=0.1)
+    n = out.shape[1]
+    m = np.arange(n)
+    cos = [a[i] * np.cos(2 * np.pi * f[i] * m / FS + math.radians(ph[i])) for i in range(4)]
+    fade = level(n, *stages([(0, 0.0), (960, 1.0)]))
+    want = fade * (cos[0] + cos[1]) * cos[2] * cos[3]
+    close(out[1], want, (a[0] + a[1]) * a[2] * a[3])
+
+
 def test_chirp_sweeps_its_frequency_in_a_straight_line():
     stim = """
 signals = [{name = "up", type = "chirp", freq = 100.0, freq_end = 400.0, duration = 0.05, amp = 5.0}]
