@@ -88,7 +88,7 @@ def load(path) -> Pattern:
     return pat
 
 
-# ----------------------------------------------------------------------------- reading helpers
+# ----------------------------------------------------------------------------- reading values
 
 
 def _num(pat, v, where, lo=None, hi=None):

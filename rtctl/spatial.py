@@ -88,6 +88,8 @@ def check(sp, where: str) -> str | None:
         return f"{where}.table = {list(sp['table'])}: a table roll-off needs at least 2 gains (d / r = 0 ... 1)"
     if sp["rolloff"] != "table" and len(sp["table"]):
         return f"{where}.table: only for rolloff = 'table'"
+    if any(sp["pitch"]) and not all(sp["pitch"]):
+        return f"{where}.pitch = {list(sp['pitch'])}: give both pitches (m), or [0, 0] for positions in pitches"
     if any(math.isinf(v) for v in (*sp["x"], *sp["y"])):
         return f"{where}: way-points must be finite"
     return None

@@ -91,6 +91,7 @@ def test_rolloff_laws_reach_1_at_the_source_and_0_at_the_radius():
     (dict(times="[1.0, 0.0]", x="[0.0, 1.0]", y="[0.0, 0.0]"), "time order"),
     (dict(rolloff='"table"', table="[1.0]"), "at least 2"),
     (dict(radius=0.0), "radius"),
+    (dict(pitch="[1.9e-3, 0.0]"), "both pitches"),
 ])
 def test_bad_spatial_tables_are_refused_in_one_line(keys, words):
     with pytest.raises(SceneError) as e:
