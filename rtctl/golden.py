@@ -272,7 +272,11 @@ def main(argv=None) -> int:
         else:
             diff = compare(json.loads(p.read_text()), new)
         changed += bool(diff)
-        print(f"{name}: {'unchanged (within tolerance)' if not diff else f'{len(diff)} difference(s)'}")
+        if not diff:
+            same = p.exists() and json.loads(p.read_text()) == new
+            print(f"{name}: {'identical' if same else f'unchanged (within tolerance {tolerance(name):g})'}")
+        else:
+            print(f"{name}: {len(diff)} difference(s) beyond tolerance {tolerance(name):g}")
         for line in diff[:20]:
             print(f"  {line}")
         if len(diff) > 20:
