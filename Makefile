@@ -31,7 +31,7 @@ bench: $(STAMP)
 
 # Rewrite tests/golden/ (one compact golden per bundled scene) and print what changed (docs/golden.md).
 golden: $(STAMP)
-	$(PY) -m rtctl.golden
+	$(PY) -m rtctl.engine.golden
 
 docs: $(STAMP)
 	$(PY) -m rtctl.schema > docs/scene.md

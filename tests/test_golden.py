@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from numba import njit
 
-from rtctl import golden, scene
+from rtctl import scene
 from rtctl.dsp import pulse_process
+from rtctl.engine import golden
 
 
 def test_every_bundled_scene_has_a_golden():
@@ -20,8 +21,8 @@ def test_every_bundled_scene_has_a_golden():
 
 @pytest.mark.parametrize("name", scene.bundled())
 def test_the_scene_matches_its_golden(name):
-    """A difference names the quantity, row and frame; `python -m rtctl.golden` shows all of them
-    and rewrites the goldens when the change is meant."""
+    """A difference names the quantity, row and frame; `python -m rtctl.engine.golden` shows all
+    of them and rewrites the goldens when the change is meant."""
     diff = golden.compare(golden.load(name), golden.fingerprint(name))
     assert not diff, f"{name} differs from tests/golden/{name}.json:\n" + "\n".join(diff[:15])
 

@@ -15,7 +15,7 @@ the trace and the run's summary figures:
   voltage, limits, contact, felt), its warnings, faults and events.
 
 The tolerances (:data:`RTOL`, :data:`TOLERANCES`) and why they are what they are:
-docs/golden.md. ``python -m rtctl.golden`` rewrites the goldens and prints what changed;
+docs/golden.md. ``python -m rtctl.engine.golden`` rewrites the goldens and prints what changed;
 ``--check`` only compares (exit 1 on a difference).
 """
 
@@ -62,7 +62,7 @@ def tolerance(name: str) -> float:
 TIMING = ("realtime_factor", "block_time_us", "build_s", "deadline_misses", "late_wakeups", "overruns",
           "trace_dropped", "block_function", "numba_cache", "io")
 
-DEFAULT_DIR = Path(__file__).resolve().parents[1] / "tests" / "golden"
+DEFAULT_DIR = Path(__file__).resolve().parents[2] / "tests" / "golden"
 
 
 def overrides(name: str) -> list:
@@ -105,9 +105,9 @@ def _lockin(x: np.ndarray, t: np.ndarray, f: float, frame: int, n_frames: int, f
 
 def fingerprint(name: str, extra=()) -> dict:
     """Run bundled scene ``name`` (plus overrides ``extra``) and reduce it to its golden."""
-    from . import scene
-    from .engine.run import run
-    from .trace import TraceReader
+    from .. import scene
+    from ..trace import TraceReader
+    from .run import run
 
     over = [*overrides(name), *extra]
     sc = scene.load(name, over)
@@ -200,7 +200,8 @@ def compare(golden: dict, new: dict) -> list[str]:
             continue
         if key.endswith(".phase"):
             amp = _numbers(g[key[:-len("phase")] + "amp"])
-            on = amp > PHASE_FLOOR * np.nanmax(np.abs(amp))
+            top = np.max(np.abs(amp[np.isfinite(amp)]), initial=0.0)
+            on = np.isfinite(amp) & (amp > PHASE_FLOOR * top)
             d = np.abs(np.angle(np.exp(1j * (y - x))))
             bad = on & ~(d <= phase_tol)
             if np.any(bad):
@@ -248,9 +249,9 @@ def write(golden: dict, directory=DEFAULT_DIR) -> Path:
 
 
 def main(argv=None) -> int:
-    from . import scene
+    from .. import scene
 
-    ap = argparse.ArgumentParser(prog="python -m rtctl.golden",
+    ap = argparse.ArgumentParser(prog="python -m rtctl.engine.golden",
                                  description="Rewrite the golden traces of the bundled scenes (tests/golden/) "
                                              "and print what changed; --check only compares.")
     ap.add_argument("scenes", nargs="*", help="bundled scenes (default: all)")
