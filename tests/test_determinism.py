@@ -121,13 +121,38 @@ def test_a_checkpoint_into_an_earlier_one_reuses_its_arrays():
     assert want
 
 
-def test_a_checkpoint_refuses_a_rig_of_another_layout():
+def test_a_checkpoint_refuses_a_rig_of_another_scene():
+    """Another display, and the same display with another tone frequency (the same arrays, so only
+    the scene's digest tells them apart): refused, in one line."""
     cp = build(scene.load("line-bimorph-5")).checkpoint()
-    other = build(scene.load("solenoid-3x3"))
-    with pytest.raises(ValueError, match="another rig layout"):
-        other.restore(cp)
-    with pytest.raises(ValueError, match="another rig layout"):
-        other.checkpoint(into=cp)
+    for other in (build(scene.load("solenoid-3x3")),
+                  build(scene.load("line-bimorph-5", ["stimulus.tones.4.freq=240.0"]))):
+        with pytest.raises(ValueError, match="another scene"):
+            other.restore(cp)
+        with pytest.raises(ValueError, match="another scene"):
+            other.checkpoint(into=cp)
+
+
+def test_a_checkpoint_saved_to_a_file_resumes_a_rig_built_apart(tmp_path):
+    over = overrides("line-bimorph-5-closed")
+    a = build(scene.load("line-bimorph-5-closed", over))
+    run_blocks(a, 0, 130)  # past the press at 0.08 s
+    path = a.checkpoint().save(tmp_path / "state.npz")
+    want = run_blocks(a, 130, 200)
+    b = build(scene.load("line-bimorph-5-closed", over))
+    b.restore(type(a.checkpoint()).load(path))
+    assert b.blocks == 130
+    assert_same(run_blocks(b, 130, 200), want, 130)
+
+
+def test_a_file_that_is_no_checkpoint_is_refused_in_one_line(tmp_path):
+    from rtctl.engine.state import Checkpoint
+
+    bad = tmp_path / "x.npz"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="x.npz: not an rtctl checkpoint") as e:
+        Checkpoint.load(bad)
+    assert "\n" not in str(e.value)
 
 
 def test_the_state_covers_what_the_blocks_change():

@@ -106,9 +106,10 @@ class Rig:
         self.stages = self._stages()
         self.blocks = 0  # blocks the block function has run since the last reset
         self._compile()
-        from .state import state_arrays
+        from .state import scene_digest, state_arrays
 
         self.state_arrays = state_arrays(self)  # what a checkpoint saves (rtctl.engine.state)
+        self.scene_digest = scene_digest(scene)
 
     # --- construction -----------------------------------------------------------------------
 
@@ -422,7 +423,7 @@ class Rig:
         Raises
         ------
         ValueError
-            ``cp`` is of a rig with other state arrays (another scene or channel count).
+            ``cp`` is of another scene (overrides included) or a rig with other state arrays.
         """
         from .state import load
 

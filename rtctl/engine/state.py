@@ -26,7 +26,10 @@ device's.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -74,16 +77,51 @@ class Checkpoint:
         The stimulus' between-block position (:meth:`rtctl.stimulus.Stimulus.position`).
     layout : tuple
         ``(shape, dtype)`` per array: a checkpoint goes back only into a rig of the same layout.
+    scene : str
+        A digest of the scene the rig was built from (overrides applied): a checkpoint goes back
+        only into a rig of the same scene, or its arrays would land in another run's meaning.
     """
 
     block: int
     arrays: list
     position: tuple
     layout: tuple = field(default=())
+    scene: str = ""
 
     @property
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in self.arrays))
+
+    def save(self, path) -> Path:
+        """Write the checkpoint to ``path`` (numpy ``.npz``, uncompressed; returns the path)."""
+        path = Path(path)
+        head = {"block": int(self.block), "position": list(self.position), "scene": self.scene}
+        with open(path, "wb") as f:  # an open file: numpy appends no ".npz" to the name
+            np.savez(f, head=np.array(json.dumps(head)), **{f"a{i}": a for i, a in enumerate(self.arrays)})
+        return path
+
+    @classmethod
+    def load(cls, path) -> "Checkpoint":
+        """Read a checkpoint :meth:`save` wrote.
+
+        Raises
+        ------
+        ValueError
+            ``path`` is not a checkpoint (one line naming the file and what is wrong).
+        """
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                head = json.loads(str(z["head"]))
+                arrays = [z[f"a{i}"] for i in range(len(z.files) - 1)]
+            cp = cls(int(head["block"]), arrays, tuple(head["position"]), layout_of(arrays), str(head["scene"]))
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"{path}: not an rtctl checkpoint ({e})") from None
+        return cp
+
+
+def scene_digest(scene) -> str:
+    """The digest :attr:`Checkpoint.scene` compares (sha256 of the scene's JSON, sorted keys)."""
+    return hashlib.sha256(json.dumps(scene.to_dict(), sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def layout_of(arrays) -> tuple:
@@ -94,7 +132,8 @@ def save(rig, into: Checkpoint | None = None) -> Checkpoint:
     """The rig's state now (between blocks); into ``into``'s arrays when given (no allocation)."""
     arrays = rig.state_arrays
     if into is None:
-        return Checkpoint(rig.blocks, [a.copy() for a in arrays], rig.stimulus.position(), layout_of(arrays))
+        return Checkpoint(rig.blocks, [a.copy() for a in arrays], rig.stimulus.position(), layout_of(arrays),
+                          rig.scene_digest)
     _check(rig, into)
     for dst, src in zip(into.arrays, arrays):
         np.copyto(dst, src)
@@ -112,6 +151,9 @@ def load(rig, cp: Checkpoint) -> None:
 
 
 def _check(rig, cp: Checkpoint) -> None:
+    if cp.scene != rig.scene_digest:
+        raise ValueError(f"a checkpoint of another scene (digest {cp.scene}, this rig's {rig.scene_digest}): "
+                         "restore it into a rig built from the same scene and overrides")
     if cp.layout != layout_of(rig.state_arrays):
         raise ValueError(f"a checkpoint of another rig layout ({len(cp.layout)} state arrays, this rig "
                          f"has {len(rig.state_arrays)}, or their shapes differ): restore it into a rig built "
