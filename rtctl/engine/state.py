@@ -101,7 +101,7 @@ class Checkpoint:
         return path
 
     @classmethod
-    def load(cls, path) -> "Checkpoint":
+    def load(cls, path) -> Checkpoint:
         """Read a checkpoint :meth:`save` wrote.
 
         Raises
