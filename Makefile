@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.rtctl-installed
 
-.PHONY: demo test test-all bench docs clean
+.PHONY: demo test test-all bench docs golden clean
 
 # Set-up, once per pyproject change: the system libraries of the audio path (tools/sysdeps.sh
 # installs them where it can, else prints the command), then the package with its test extras.
@@ -28,6 +28,10 @@ test-all:
 
 bench: $(STAMP)
 	$(PY) bench/loop.py
+
+# Rewrite tests/golden/ (one compact golden per bundled scene) and print what changed (docs/golden.md).
+golden: $(STAMP)
+	$(PY) -m rtctl.engine.golden
 
 docs: $(STAMP)
 	$(PY) -m rtctl.schema > docs/scene.md

@@ -200,6 +200,16 @@ class Stimulus:
         if self.render is not None:
             self.render.apply(k)
 
+    def position(self) -> tuple:
+        """Where the stimulus is between blocks, outside its arrays: the rendered stimulus' frame
+        shown and path update (empty for tones, whose schedule is a function of the block)."""
+        return self.render.position() if self.render is not None else ()
+
+    def seek(self, position: tuple) -> None:
+        """Back to a :meth:`position` (a checkpoint's restore)."""
+        if self.render is not None:
+            self.render.seek(position)
+
     def reset(self) -> None:
         """Back to the start: banks at rest (no block may run meanwhile), render at its first frame."""
         if self.bank is not None:
@@ -330,6 +340,15 @@ class RenderStage:
         self._shown = -1
         if self._frames is None:
             self.player.index = -1
+
+    def position(self) -> tuple:
+        """``(frame shown, path update in force)``; -1: none yet."""
+        return (self._shown, -1 if self._frames is not None else self.player.index)
+
+    def seek(self, position: tuple) -> None:
+        self._shown = int(position[0])
+        if self._frames is None:
+            self.player.index = int(position[1])
 
     def apply(self, k: int) -> None:
         """Write the parameter changes due at block ``k``."""

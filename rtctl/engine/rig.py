@@ -109,7 +109,12 @@ class Rig:
             for ev in self.events:
                 self._events_at.setdefault(ev.block, []).append(ev)
         self.stages = self._stages()
+        self.blocks = 0  # blocks the block function has run since the last reset
         self._compile()
+        from .state import scene_digest, state_arrays
+
+        self.state_arrays = state_arrays(self)  # what a checkpoint saves (rtctl.engine.state)
+        self.scene_digest = scene_digest(scene)
 
     # --- construction -----------------------------------------------------------------------
 
@@ -339,6 +344,7 @@ class Rig:
 
     def reset(self) -> None:
         """Every stage and the buffers back to rest (no block function may run meanwhile)."""
+        self.blocks = 0
         self.out[...] = 0.0
         self.targets_um[...] = self.stimulus.targets_um0
         self.estimated[...] = np.nan  # observed channels' rows: zeros, by their stage's reset
@@ -388,6 +394,7 @@ class Rig:
     def step(self) -> int:
         """The block function without the backend's I/O: status bits (a callback backend calls
         this from its thread)."""
+        self.blocks += 1
         if self._block is not None:
             return self._block()
         status = 0
@@ -414,6 +421,31 @@ class Rig:
         :class:`rtctl.io.base.Snapshots`) at ``slot``, for the trace (no allocation)."""
         fn, args = self.snapshot_call(snaps)
         fn(*args, slot)
+
+    # --- state -------------------------------------------------------------------------------
+
+    def checkpoint(self, into=None):
+        """The loop's whole state between two blocks, as a :class:`rtctl.engine.state.Checkpoint`
+        (``checkpoint.block``: the next block to run). With ``into`` (an earlier checkpoint of this
+        rig) its arrays are reused: nothing is allocated. Call it between blocks only: never while
+        a device thread runs the block function."""
+        from .state import save
+
+        return save(self, into)
+
+    def restore(self, cp) -> None:
+        """Put checkpoint ``cp`` back (this rig's, or one of a rig built from the same scene and
+        overrides): continuing with ``apply_schedule(cp.block)`` and ``advance()`` gives the
+        blocks a run straight through gives, bitwise. Between blocks only.
+
+        Raises
+        ------
+        ValueError
+            ``cp`` is of another scene (overrides included) or a rig with other state arrays.
+        """
+        from .state import load
+
+        load(self, cp)
 
     # --- trace ----------------------------------------------------------------------------------
 

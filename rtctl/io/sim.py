@@ -302,6 +302,12 @@ class SimDevice(Backend):
         after = [(f"sim group {i}", kernel, args, group_status) for i, (kernel, args) in enumerate(self._calls)]
         return before, after
 
+    def state_arrays(self) -> tuple:
+        """Every array the simulated device writes or its events rewrite: its groups' kernel
+        arguments (plant, finger and sensing-noise states, switched loads, pin preloads) and its
+        buffers, for a checkpoint (:mod:`rtctl.engine.state`)."""
+        return (self._next, self.sensed, self.truth, *(a for _, args in self._calls for a in args))
+
     def read(self) -> int:
         """Fill ``sensed`` with the currents of the previous block (one block of latency)."""
         np.copyto(self.sensed, self._next)
