@@ -135,7 +135,7 @@ def _faults() -> Table:
     return Table(
         {
             "inject": one,
-            "random": Key("int", 0, "", "faults drawn at random (seeded by io.faults.seed) besides `inject`: kind, start, length and row", 0, 1000),
+            "random": Key("int", 0, "", "faults drawn at random (seeded by io.faults.seed) besides `inject`: kind, start, length and row (at most 64 faults in all)", 0, 64),
             "seed": Key("int", 1, "", "seed of the random faults", 0, 2**63 - 1),
             "kinds": Key("strs", (), "", "the kinds random faults are drawn from; [] = every kind the backend and scene can take", choices=kinds, max_items=64),
         },

@@ -245,17 +245,20 @@ def draw(rng: random.Random, pool, ctx: Context) -> Fault:
         row = rng.randrange(ctx.n_sensed)
     if kind == "latency_spike":
         value, blocks = float(rng.randint(1, 8)), rng.randint(5, 50)
-    elif kind == "xrun_burst":  # clearly within the guard's bucket, or clearly beyond it
+    elif kind == "xrun_burst":  # clearly within the guard's bucket, or clearly beyond it (and within the run)
         lim = burst_limit(ctx)
-        small = max(1, ctx.xrun_limit // 2)
-        blocks = rng.randint(1, small) if rng.random() < 0.5 or not math.isfinite(lim) else \
-            rng.randint(math.ceil(2 * lim), math.ceil(3 * lim))
+        big = math.isfinite(lim) and rng.random() < 0.5 and ctx.n_blocks > math.ceil(2 * lim)
+        if big:
+            blocks = rng.randint(math.ceil(2 * lim), min(math.ceil(3 * lim), ctx.n_blocks - 1))
+            start = min(start, ctx.n_blocks - blocks)
+        else:
+            blocks = rng.randint(1, max(1, ctx.xrun_limit // 2) if ctx.xrun_limit else 20)
     elif kind == "amp_clipped":
         value, blocks = round(rng.uniform(0.2, 0.8), 3), rng.randint(10, 200)
         if rng.random() < 0.5:
             row = rng.randrange(ctx.n_channels)
-    elif kind.startswith("byte_"):
-        value = round(rng.uniform(0.001, 0.05), 4)
+    elif kind.startswith("byte_"):  # a frame of ~10 bytes hit one time in 10 to 100, for 0.1-2 s of frames
+        value, blocks = round(rng.uniform(0.001, 0.01), 4), rng.randint(100, 2000)
     if kind in PERMANENT:
         blocks = 0
     return Fault(kind, start, blocks, row, value)
@@ -315,7 +318,7 @@ def inject_sensed(plan, value, ctl, sensed, hist, last, full_scale):
 @kernel
 def inject_drive(plan, value, ctl, drive, dev, vmax):
     """What the plant receives of block ``ctl[_BLK]``'s drive ``drive`` (the rig's limited
-    output, left as it is) into ``dev``; counts the block. Returns 0."""
+    output, left as it is) into ``dev``. Returns 0."""
     k = ctl[_BLK]
     n_c, nb = drive.shape
     dev[:, :] = drive
@@ -331,7 +334,13 @@ def inject_drive(plan, value, ctl, drive, dev, vmax):
                 lim = value[f] * vmax[c]
                 for i in range(nb):
                     dev[c, i] = min(max(dev[c, i], -lim), lim)
-    ctl[_BLK] = k + 1
+    return 0
+
+
+@kernel
+def count_block(ctl):
+    """The device's block is done: the next one starts. Returns 0."""
+    ctl[_BLK] += 1
     return 0
 
 
@@ -416,6 +425,17 @@ class Injector:
 
     def drive(self, drive, dev) -> int:
         return inject_drive(self.plan, self.value, self.ctl, drive, dev, self.vmax)
+
+    def calls(self, drive, dev, sensed) -> tuple[list, list]:
+        """``(before, after)`` kernel calls ``[(kernel, args)]`` around a device's own for one
+        block, for a device whose block runs as compiled calls (the audio emulator): the drive the
+        plant gets, before; the readings it gives and the block count, after."""
+        return ([(inject_drive, (self.plan, self.value, self.ctl, drive, dev, self.vmax))],
+                [(inject_sensed, (self.plan, self.value, self.ctl, sensed, self.hist, self.last, self.full_scale)),
+                 (count_block, (self.ctl,))])
+
+    def count(self) -> int:
+        return count_block(self.ctl)
 
     def guard(self, status: int) -> int:
         return xrun_guard(self.ctl, status)

@@ -365,6 +365,7 @@ class SimDevice(Backend):
             for target in self._fingers:
                 self.faults.finger(*target)
             self.faults.drive(self._rig_drive, self._drive)
+            self.faults.count()
         for group_kernel, args in self._calls:
             status |= group_status(group_kernel(*args))
         return status
