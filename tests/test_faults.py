@@ -265,3 +265,59 @@ def test_the_xrun_guard_is_a_leaky_bucket():
         fired.append(level > 30)
     assert any(fired) and not all(fired)
     assert math.isclose(F.burst_limit(ctx), 30 / 7)
+
+
+def test_faults_on_one_block_combine_in_the_devices_order_not_the_plans():
+    ctx = F.Context("sim", 100, n_sensed=2, n_channels=1, xrun_limit=0)
+    inj = F.Injector(ctx, 4, [1.0], [1.0, 1.0],
+                     [F.Fault("sensed_inf", 1, 1, 0), F.Fault("electrode_open", 0, 0, 0),
+                      F.Fault("latency_spike", 1, 1, 1, 1.0), F.Fault("sensed_nan", 1, 1, 1),
+                      F.Fault("block_dropped", 2, 1)])
+    got = []
+    for k in range(3):
+        x = np.full((2, 4), float(k + 1))
+        st = inj.sensed(x)
+        inj.count()
+        got.append((x, st))
+    assert np.all(got[0][0][0] == 0.0) and np.all(got[0][0][1] == 1.0)       # open
+    assert np.all(got[1][0][0] == np.inf) and np.all(np.isnan(got[1][0][1]))  # the converter's on top
+    assert np.all(got[2][0] == 0.0) and got[2][1] & safety.IO_XRUN            # no block at all
+
+
+def test_the_campaign_judge_catches_a_missed_fade_a_stray_fault_and_a_missing_flag():
+    from rtctl.engine.bench_faults import judge
+
+    ctx = F.Context("sim", 100, n_sensed=2, n_channels=1, observed_rows=(0, 1), xrun_limit=25,
+                    xrun_window_blocks=750)
+    quiet = np.zeros(101, dtype=np.int64)
+    ran = {"duration_s": 101 * 32 / 48000, "fs": 48000.0, "block": 32, "faults": []}
+    stop = [F.Fault("device_stopped", 40, 0)]
+    assert "did not end on it" in judge(stop, ctx, quiet, ran)["problems"][0]
+    st = quiet[:41].copy()
+    st[40] = safety.DEVICE_LOST
+    good = {**ran, "duration_s": 41 * 32 / 48000, "faults": ["I/O device lost"]}
+    j = judge(stop, ctx, st, good)
+    assert j["problems"] == [] and j["outcome"] == "fade" and j["injected"][0]["detected"]
+    assert "no injected fault calls for" in judge([], ctx, st, good)["problems"][0]
+    nan = [F.Fault("sensed_nan", 10, 2, 0)]
+    assert "no 'self-sensing estimate non-finite" in judge(nan, ctx, quiet, ran)["problems"][0]
+    flagged = quiet.copy()
+    flagged[11] = safety.ESTIMATE_NONFINITE
+    assert judge(nan, ctx, flagged, ran)["outcome"] == "flag"
+    hidden = nan + [F.Fault("block_dropped", 10, 2)]   # the reading never arrived
+    x = quiet.copy()
+    x[10:12] = safety.IO_XRUN
+    assert judge(hidden, ctx, x, ran)["problems"] == []
+
+
+def test_a_short_campaign_passes_and_prints_its_table(capsys):
+    from rtctl.engine.bench_faults import main
+
+    assert main(["--runs", "3", "--scenes", "line-bimorph-5", "--duration", "0.1"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"^line-bimorph-5\s+open\s+3\s", out, re.M) and "FAIL" not in out
+    assert main(["--runs", "2", "--scenes", "solenoid-3x3", "--duration", "0.1", "--json"]) == 0
+    import json
+
+    d = json.loads(capsys.readouterr().out)
+    assert d["total"]["runs"] == 2 and d["total"]["samples_beyond_limits"] == 0 and d["failing"] == []

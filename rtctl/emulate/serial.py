@@ -24,7 +24,10 @@ The emulator keeps its own descriptor of the slave open, so a host closing the p
 and a new open works. Faults for tests: ``--drop-byte-every N`` (every Nth byte from the host is
 lost), ``--garbage-every N`` (random bytes before every Nth answer), ``--corrupt-every N`` (one
 bit flipped in every Nth answer), ``--stall-after S`` (S seconds after the first valid frame it
-stops answering and ignores frames, port open), ``--mute`` (never answers).
+stops answering and ignores frames, port open), ``--mute`` (never answers). The scene's
+``[io.faults]`` (docs/faults.md) adds ``byte_flip``/``byte_dup`` (answers) and ``byte_drop`` (host
+bytes), each a fraction of the bytes in its window, and ``device_stopped``, timed from the run's
+first PINS frame.
 """
 
 from __future__ import annotations
@@ -273,8 +276,8 @@ class Firmware:
 class Faults:
     """Injected line faults (all off by default): every Nth byte or answer (the options), and the
     scene's ``[io.faults]`` byte faults, each a fraction of the bytes within its time window
-    (``scheduled``: ``(kind, from s, to s, fraction)``, seconds since the first valid frame, which
-    :func:`serve` keeps in ``now``)."""
+    (``scheduled``: ``(kind, from s, to s, fraction)``, seconds since the first valid PINS frame,
+    which :func:`serve` keeps in ``now``)."""
 
     def __init__(self, drop_every=0, garbage_every=0, corrupt_every=0, seed=1, scheduled=()):
         self.drop_every, self.garbage_every, self.corrupt_every = drop_every, garbage_every, corrupt_every
@@ -331,9 +334,9 @@ class Faults:
 
 def scene_faults(scene) -> tuple[list, float]:
     """The scene's ``[io.faults]`` as this emulator injects them: ``(byte faults as (kind, from s,
-    to s, fraction of bytes), seconds after the first valid frame at which the device stops
-    answering (inf: never))``; one line (SceneError) for a kind a pin controller's line cannot
-    take."""
+    to s, fraction of bytes), when the device stops answering (inf: never))``, seconds after the
+    first valid PINS frame (the run's first block); one line (SceneError) for a kind a pin
+    controller's line cannot take."""
     from ..io import faults as F
 
     if not F.active(scene):
@@ -351,10 +354,13 @@ def scene_faults(scene) -> tuple[list, float]:
     return scheduled, stall
 
 
-def serve(fw: Firmware, master: int, faults: Faults, stop, stall_after=None, mute=False, log=None) -> None:
-    """The firmware's main loop until ``stop()`` is true."""
+def serve(fw: Firmware, master: int, faults: Faults, stop, stall_after=None, mute=False, log=None,
+          fault_stall=math.inf) -> None:
+    """The firmware's main loop until ``stop()`` is true. The scene's faults count time from the
+    first valid PINS frame (a run's first block: HELLO comes while its rig is still being built);
+    ``fault_stall`` is when, on that clock, the device stops answering."""
     dec = P.Decoder()
-    first_valid = None
+    first_valid = first_pins = None
     while not stop():
         try:  # wake for a byte or for the next plant chunk, whichever comes first
             ready, _, _ = select.select([master], [], [], min(fw.wait(time.monotonic()), 0.01))
@@ -371,13 +377,16 @@ def serve(fw: Firmware, master: int, faults: Faults, stop, stall_after=None, mut
                     raise
                 data = b""  # no slave open: cannot happen while we hold one, but do not spin
                 time.sleep(fw.B / fw.fs)
-            faults.now = None if first_valid is None else now - first_valid
+            faults.now = None if first_pins is None else now - first_pins
             for f in dec.feed(faults.incoming(data)):
                 if f.error is None and first_valid is None:
                     first_valid = now
-                faults.now = now - first_valid if first_valid is not None else None
+                if f.error is None and f.kind == P.PINS and first_pins is None:
+                    first_pins = now
+                faults.now = None if first_pins is None else now - first_pins
                 stalled = mute or (stall_after is not None and first_valid is not None
-                                   and now - first_valid >= stall_after)
+                                   and now - first_valid >= stall_after) or (
+                    faults.now is not None and faults.now >= fault_stall)
                 if stalled:
                     continue  # hung: reads and drops, answers nothing
                 answer = fw.on_frame(f, now)
@@ -405,7 +414,6 @@ def main(argv: list[str] | None = None) -> int:
     fw = Firmware(sc, a.fs, a.chunk_ms * 1e-3, a.pulse_ms * 1e-3, max(a.settle_ms, 0.0) * 1e-3)
     fw.compile()
     scheduled, stall = scene_faults(sc)
-    stall_after = stall if a.stall_after is None else min(a.stall_after, stall)
     faults = Faults(a.drop_byte_every, a.garbage_every, a.corrupt_every, a.seed, scheduled)
     master, slave = pty.openpty()
     tty.setraw(slave)  # no echo, no line discipline: bytes pass as they are (0x00 included)
@@ -417,8 +425,7 @@ def main(argv: list[str] | None = None) -> int:
         print(os.ttyname(slave), flush=True)
         fw.t0 = fw.last_valid = time.monotonic()
         fw.done = 0
-        serve(fw, master, faults, lambda: bool(flag), None if stall == math.inf and a.stall_after is None
-              else stall_after, a.mute, log)
+        serve(fw, master, faults, lambda: bool(flag), a.stall_after, a.mute, log, stall)
     finally:
         for s, h in old.items():
             signal.signal(s, h)

@@ -48,34 +48,62 @@ def command(name: str, sets: list[str]) -> str:
 
 
 def judge(faults, ctx, status, summary) -> dict:
-    """Compare one run's faults with what the run shows: per injected fault (one that started
-    before the run ended) its expected outcome and whether its status bit was seen from its start
-    on; the run's outcome (``fade`` when it ended on a fault, ``flag`` when an expected bit was
-    seen, else ``ride``) and what is wrong, in words."""
+    """Compare one run's faults with what the run shows.
+
+    The run must end on the first fault that ends runs (a stopped device at its block; the xrun
+    guard at the block the documented bucket overflows, :func:`rtctl.io.faults.xrun_fault_block`)
+    and on no other; each flagging fault that began before the end must show its bit from its
+    block on (a NaN/inf reading hidden on every block by a dropped block or a stopped device
+    excepted: that reading never arrived). Returns per injected fault (one that began before the
+    run ended) its expected outcome and whether it was detected, the run's outcome (``fade``,
+    ``flag`` when a flagging fault's bit was seen, else ``ride``) and what is wrong, in words."""
     from .. import safety
-    from ..io.faults import expected
+    from ..io.faults import expected, xrun_fault_block
 
     ended = int(round(summary["duration_s"] * summary["fs"] / summary["block"]))
     faulted = bool(summary["faults"])
-    injected, problems, seen_bits = [], [], 0
-    want_fade = None
+    ends = [(f.start, safety.DEVICE_LOST, f.kind) for f in faults if f.kind == "device_stopped"]
+    fire = xrun_fault_block(faults, ctx)
+    if fire is not None:
+        ends.append((fire, safety.XRUN_BURST, "xrun guard"))
+    want = min(ends) if ends else None
+    if want is not None and want[0] >= ctx.n_blocks:
+        want = None
+    problems, injected, flagged = [], [], False
+    if want is not None:
+        at, bit, what = want
+        if not faulted:
+            problems.append(f"{what} at block {at}: the run did not end on it")
+        elif ended != at + 1 or not status[at] & bit:
+            problems.append(f"{what} should end the run at block {at} with {safety.STATUS_NAMES[bit]!r}; it ended at "
+                            f"block {ended - 1}: " + "; ".join(summary["faults"]))
+    elif faulted:
+        problems.append("the run ended on a fault no injected fault calls for: " + "; ".join(summary["faults"]))
+    silent = {k for f in faults if f.kind in ("block_dropped", "xrun_burst", "device_stopped")
+              for k in range(f.start, ctx.n_blocks if f.kind == "device_stopped" else f.start + max(1, f.blocks))}
     for f in sorted(faults, key=lambda f: f.start):
         if f.start >= ended:
             continue  # the run ended (on an earlier fault) before this one began
         outcome, bit = expected(f, ctx)
-        hit = bool(bit) and bool(((status[f.start:] & bit) != 0).any())
+        if outcome == "fade":   # judged above, for the run
+            hit = want is not None and f.start <= want[0] and faulted and bool(status[ended - 1] & bit)
+            if f.kind == "xrun_burst" and (want is None or want[2] != "xrun guard"):
+                outcome, bit = "flag", safety.IO_XRUN   # ended by another fault first
+        if outcome == "flag":
+            seen = status[f.start:ended] & bit
+            if f.kind in ("sensed_nan", "sensed_inf"):
+                live = [k for k in range(f.start, min(f.stop, ended)) if k not in silent]
+                if not live:
+                    outcome, bit = "ride", 0   # never delivered: a dropped block or a stopped device took it
+                seen = status[live] & bit if live else seen[:0]
+            hit = bool(bit) and bool((seen != 0).any())
+            flagged |= hit
+            if bit and not hit:
+                problems.append(f"{f.kind} at block {f.start}: no {safety.STATUS_NAMES[bit]!r} seen")
+        elif outcome == "ride":
+            hit = False
         injected.append({"kind": f.kind, "start": f.start, "expected": outcome, "detected": hit})
-        if bit and not hit:
-            problems.append(f"{f.kind} at block {f.start}: no {safety.STATUS_NAMES[bit]!r} seen")
-        if outcome == "fade" and want_fade is None:
-            want_fade = f
-        if hit:
-            seen_bits |= bit
-    if want_fade is not None and not faulted:
-        problems.append(f"{want_fade.kind} at block {want_fade.start}: the run did not end on it")
-    if faulted and want_fade is None:
-        problems.append("the run ended on a fault no injected fault calls for: " + "; ".join(summary["faults"]))
-    outcome = "fade" if faulted else "flag" if seen_bits else "ride"
+    outcome = "fade" if faulted else "flag" if flagged else "ride"
     return {"injected": injected, "outcome": outcome, "problems": problems}
 
 
@@ -132,8 +160,10 @@ def campaign(name: str, runs: int, seed0: int, max_faults: int, duration: float,
                 row["mismatched"] += bool(j["problems"])
                 for f in j["injected"]:
                     row["faults_injected"] += 1
-                    k = row["by_kind"].setdefault(f["kind"], {"injected": 0, "expected": f["expected"], "detected": 0})
+                    k = row["by_kind"].setdefault(f["kind"], {"injected": 0, "ride": 0, "flag": 0, "fade": 0,
+                                                              "detected": 0})
                     k["injected"] += 1
+                    k[f["expected"]] += 1
                     if f["expected"] != "ride":
                         row["faults_detectable"] += 1
                         row["faults_detected"] += f["detected"]

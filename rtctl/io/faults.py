@@ -168,6 +168,29 @@ def burst_limit(ctx: Context) -> float:
     return math.inf if n <= 0 or w <= n else n * w / (w - n)
 
 
+def xrun_blocks(faults) -> set:
+    """The blocks the device flags ``IO_XRUN`` (dropped blocks and xrun bursts; a stopped device
+    counts none)."""
+    return {k for f in faults if f.kind in ("block_dropped", "xrun_burst")
+            for k in range(f.start, f.start + max(1, f.blocks))}
+
+
+def xrun_fault_block(faults, ctx: Context) -> int | None:
+    """The block the xrun guard ends the run at for these faults, by the documented rule (a
+    leaky bucket: W in per flagged block, N out per block, more than N W in it ends the run; N
+    = ``io.xrun_limit``, W its window in blocks); None when it never does."""
+    blocks = xrun_blocks(faults)
+    n, w = ctx.xrun_limit, ctx.xrun_window_blocks
+    if not blocks or n <= 0 or w <= n:
+        return None
+    level = 0
+    for k in range(min(blocks), max(blocks) + 1):
+        level = max(level - n, 0) + (w if k in blocks else 0)
+        if level > n * w:
+            return k
+    return None
+
+
 def expected(f: Fault, ctx: Context) -> tuple[str, int]:
     """``(outcome, status bit)`` the run must show for fault ``f`` (see :data:`KINDS`)."""
     k = KINDS[f.kind]
@@ -245,6 +268,8 @@ def draw(rng: random.Random, pool, ctx: Context) -> Fault:
         row = rng.randrange(ctx.n_sensed)
     if kind == "latency_spike":
         value, blocks = float(rng.randint(1, 8)), rng.randint(5, 50)
+    elif kind == "block_dropped":
+        blocks = rng.randint(1, 3)
     elif kind == "xrun_burst":  # clearly within the guard's bucket, or clearly beyond it (and within the run)
         lim = burst_limit(ctx)
         big = math.isfinite(lim) and rng.random() < 0.5 and ctx.n_blocks > math.ceil(2 * lim)
@@ -275,6 +300,20 @@ def _rows(row, n):
 
 
 @kernel
+def _phase(kind):
+    """The order of the sensed faults within a block (see :func:`inject_sensed`); -1: not one."""
+    if kind == 7:
+        return 0
+    if kind == 3 or kind == 4 or kind == 5:
+        return 1
+    if kind == 0 or kind == 1 or kind == 2:
+        return 2
+    if kind == 6 or kind == 8 or kind == 12:
+        return 3
+    return -1
+
+
+@kernel
 def inject_sensed(plan, value, ctl, sensed, hist, last, full_scale):
     """Block ``ctl[_BLK]``'s readings as the faulty device delivers them, in place; returns the
     status bits the device itself reports (its ADC's clip, an xrun, no answer)."""
@@ -284,32 +323,36 @@ def inject_sensed(plan, value, ctl, sensed, hist, last, full_scale):
     if h > 0 and n_s > 0:
         hist[k % h] = sensed
     st = 0
-    for f in range(plan.shape[0]):
-        kind = plan[f, _KIND]
-        if kind < 0 or k < plan[f, _START] or k >= plan[f, _STOP]:
-            continue
-        r0, r1 = _rows(plan[f, _ROW], n_s)
-        if kind == 6 or kind == 8 or kind == 12:  # dropped block, xrun burst, device stopped
-            sensed[:, :] = 0.0
-            st |= DEVICE_LOST if kind == 12 else IO_XRUN
-            continue
-        for r in range(r0, r1):
-            for i in range(nb):
-                if kind == 0:
-                    sensed[r, i] = math.nan
-                elif kind == 1:
-                    sensed[r, i] = math.inf
-                elif kind == 2:
-                    sensed[r, i] = full_scale[r]
-                elif kind == 3 or kind == 5:
-                    sensed[r, i] = 0.0
-                elif kind == 4:
-                    sensed[r, i] = last[r]
-                elif kind == 7:
-                    j = k - plan[f, _N]
-                    sensed[r, i] = hist[j % h, r, i] if j >= 0 and h > 0 else 0.0
-        if kind == 2:
-            st |= SENSOR_SATURATED
+    # in the order a device makes them, whatever the plan's order: which block's readings arrive
+    # (latency), what the sense chain gives (stuck, frozen, open), what the converter outputs
+    # (NaN, inf, full scale), and no block at all (dropped, xrun, stopped)
+    for phase in range(4):
+        for f in range(plan.shape[0]):
+            kind = plan[f, _KIND]
+            if kind < 0 or k < plan[f, _START] or k >= plan[f, _STOP] or _phase(kind) != phase:
+                continue
+            r0, r1 = _rows(plan[f, _ROW], n_s)
+            if phase == 3:  # dropped block, xrun burst, device stopped
+                sensed[:, :] = 0.0
+                st |= DEVICE_LOST if kind == 12 else IO_XRUN
+                continue
+            for r in range(r0, r1):
+                for i in range(nb):
+                    if kind == 0:
+                        sensed[r, i] = math.nan
+                    elif kind == 1:
+                        sensed[r, i] = math.inf
+                    elif kind == 2:
+                        sensed[r, i] = full_scale[r]
+                    elif kind == 3 or kind == 5:
+                        sensed[r, i] = 0.0
+                    elif kind == 4:
+                        sensed[r, i] = last[r]
+                    elif kind == 7:
+                        j = k - plan[f, _N]
+                        sensed[r, i] = hist[j % h, r, i] if j >= 0 and h > 0 else 0.0
+            if kind == 2:
+                st |= SENSOR_SATURATED
     for r in range(n_s):
         last[r] = sensed[r, nb - 1]
     return st
