@@ -79,7 +79,8 @@ def test_one_sample_beyond_max_voltage(tmp_path):
     v[0, i] = VMAX + 0.01   # one sample, a step of < 21 V: only the voltage bound breaks
     rep = check_trace(_write(tmp_path, v))
     _only(rep, "voltage")
-    assert rep["violations"]["voltage"] == 1 and f"block {i // BLOCK}, channel a.0, sample {i % BLOCK}" in rep["first"]["voltage"]
+    assert rep["violations"]["voltage"] == 1
+    assert f"block {i // BLOCK}, channel a.0, sample {i % BLOCK}" in rep["first"]["voltage"]
 
 
 def test_float32_rounding_at_the_bound_is_no_violation(tmp_path):

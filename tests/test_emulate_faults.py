@@ -16,7 +16,6 @@ from rtctl import scene
 from rtctl.emulate import serial as es
 from rtctl.errors import SceneError
 
-
 # --- serial: the line faults ------------------------------------------------------------------
 
 def test_scheduled_byte_faults_hit_their_fraction_only_within_their_window():
@@ -118,7 +117,8 @@ def _periods(plant, n, volts=60.0):
 
 def test_the_audio_emulator_injects_sensed_and_amplifier_faults_at_their_period():
     clean = _periods(_plant("[]"), 40)
-    p = _plant('[{kind="sensed_nan", at=0.0134, blocks=3, row=2}, {kind="amp_clipped", at=0.0134, blocks=10, value=0.2}]')
+    p = _plant('[{kind="sensed_nan", at=0.0134, blocks=3, row=2}, '
+               '{kind="amp_clipped", at=0.0134, blocks=10, value=0.2}]')
     got = _periods(p, 40)
     k0 = 20   # 0.0134 s at 48 kHz, block 32: block floor(20.1)
     for k in range(k0):

@@ -229,7 +229,7 @@ def test_the_injector_kernels_against_numpy():
     inj = F.Injector(ctx, 8, [10.0, 20.0], [0.5, 0.25, 1.0],
                      [F.Fault("sensed_nan", 2, 1, 0), F.Fault("adc_saturated", 2, 2, 2),
                       F.Fault("amp_clipped", 1, 1, 1, 0.5), F.Fault("latency_spike", 4, 2, -1, 2.0)])
-    readings, drives = [], []
+    readings = []
     for k in range(7):
         x = rng.normal(size=(3, 8))
         readings.append(x.copy())

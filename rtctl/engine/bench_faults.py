@@ -189,7 +189,8 @@ def main(argv=None) -> int:
     from ..errors import RtctlError
 
     if a.runs < 1 or a.faults < 1 or not (0 < a.duration <= 60):
-        print("rtctl bench faults: error: --runs and --faults must be >= 1 and --duration in (0, 60] s", file=sys.stderr)
+        print("rtctl bench faults: error: --runs and --faults must be >= 1 and --duration in (0, 60] s",
+              file=sys.stderr)
         return 2
     names = [s for s in a.scenes.split(",") if s] or scenes.bundled()
     say = None if a.json or not sys.stderr.isatty() else (lambda m: print(f"\r{m:<60}", end="", file=sys.stderr))
@@ -230,7 +231,8 @@ def _table(result) -> None:
               f"{o['fade']:>6}{r['mismatched']:>6}{r['samples_beyond_limits']:>7}{r['unreadable_traces']:>7}"
               f"{r['wall_s']:>8}")
     print("detect: faults whose status bit was seen / faults that must show one; wrong: runs whose outcome "
-          "differs from docs/faults.md; beyond: samples beyond a limit (must be 0); unread: traces unreadable (must be 0)")
+          "differs from docs/faults.md;\nbeyond: samples beyond a limit (must be 0); unread: traces unreadable "
+          "(must be 0)")
     for f in result["failing"]:
         print(f"FAIL {f['scene']} seed {f['seed']}: {'; '.join(f['why'])}\n  {f['command']}")
 
