@@ -174,7 +174,9 @@ def test_an_audio_run_fades_when_the_emulated_device_stops(tmp_path):
     assert proc.returncode == 1, proc.stderr
     assert "I/O device lost" in proc.stderr
     s = json.loads(proc.stdout)
-    assert 1.0 <= s["duration_s"] < 2.0
+    # the emulator counts periods from its connection to the run's ports, which precedes the
+    # run's first block by the stream's start-up; the guard then waits io.silence_ms (50 ms)
+    assert 0.5 <= s["duration_s"] < 2.0
     rep = check_trace(tmp_path)
     assert rep["ok"], rep["first"]
 
