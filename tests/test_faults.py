@@ -321,3 +321,35 @@ def test_a_short_campaign_passes_and_prints_its_table(capsys):
 
     d = json.loads(capsys.readouterr().out)
     assert d["total"]["runs"] == 2 and d["total"]["samples_beyond_limits"] == 0 and d["failing"] == []
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_injector_matches_its_naive_twin_on_random_overlapping_plans(seed):
+    from naive_faults import Device
+
+    rng = np.random.default_rng(seed)
+    kinds = [k for k in F.KINDS if "sim" in F.KINDS[k].where and k not in F.FINGER_KINDS]
+    n_s, n_c, blk, n_b = 4, 3, 8, 60
+    faults = [F.Fault(str(rng.choice(kinds)), int(rng.integers(0, n_b)), int(rng.integers(0, 12)),
+                      int(rng.integers(-1, 3)), 0.0) for _ in range(12)]
+    faults = [F.Fault(f.kind, f.start, f.blocks, f.row, float(rng.integers(1, 6)) if f.kind == "latency_spike"
+                      else round(float(rng.uniform(0.1, 1.0)), 3) if f.kind == "amp_clipped" else 0.0)
+              for f in faults]
+    full, vmax = rng.uniform(0.1, 1.0, n_s), rng.uniform(10.0, 100.0, n_c)
+    ctx = F.Context("sim", n_b, n_s, n_c, xrun_limit=0)
+    inj = F.Injector(ctx, blk, vmax, full, faults)
+    twin = Device(faults, n_s, full)
+    for k in range(n_b):
+        true = rng.normal(size=(n_s, blk))
+        x = true.copy()
+        st = inj.sensed(x)
+        want, flags = twin.sensed(k, true)
+        np.testing.assert_array_equal(x, want, err_msg=f"block {k}")
+        assert bool(st & safety.IO_XRUN) == ("xrun" in flags)
+        assert bool(st & safety.DEVICE_LOST) == ("lost" in flags)
+        assert bool(st & safety.SENSOR_SATURATED) == ("saturated" in flags)
+        d = 200.0 * rng.normal(size=(n_c, blk))
+        dev = np.zeros_like(d)
+        inj.drive(d, dev)
+        inj.count()
+        np.testing.assert_array_equal(dev, twin.drive(k, d, vmax), err_msg=f"block {k}")
