@@ -104,13 +104,15 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--out", metavar="FILE", help="calibration file to write (default out/SCENE_NAME/calibration.json)")
 
     # Tools living in their own subpackages parse their own options (``main(argv)``).
+    _tool(sub, "check-trace", "verify on every sample of a run's trace what the limiter promises (TRACE [--json])",
+          "rtctl.check:main")
     _tool(sub, "selfsense", "transfer-matrix admittance plots and the observer accuracy sweep (SCENE ...)",
           "rtctl.selfsense.cli:main")
     _tool(sub, "render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main")
     _tool(sub, "sweep", "design sweep on Dask: model, reach, selfsense or run over the product of --vary values "
           "(SCENE --vary KEY=SPEC ...)", "rtctl.cli:_sweep_main")
     b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`, "
-                       "`bench control`, `bench realtime`",
+                       "`bench control`, `bench realtime`, `bench faults`",
                        description="benchmarks (the loop's own speed: make bench)")
     bsub = b.add_subparsers(dest="bench", required=True)
     _tool(bsub, "numerics", "work-precision report and the stability cases", "rtctl.numerics.cli:main")
@@ -119,6 +121,8 @@ def _parser() -> argparse.ArgumentParser:
           "rtctl.engine.bench_control:main")
     _tool(bsub, "realtime", "the paced loop's deadline misses and wake-up lateness against cyclictest, under "
           "an optional load", "rtctl.engine.bench_realtime:main")
+    _tool(bsub, "faults", "seeded runs of every bundled scene with random faults, each trace checked "
+          "([--runs N] [--json])", "rtctl.engine.bench_faults:main")
     _name_choices(bsub)
     e = sub.add_parser("emulate", help="run a scene's simulated display as a device: `emulate audio SCENE` "
                        "(a JACK client) or `emulate serial SCENE` (a pin controller behind a pseudo-terminal)",

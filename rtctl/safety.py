@@ -445,6 +445,17 @@ class Limiter:
             self.params[_MSCALE] = np.where(duty, 1.0, self.params[_MSCALE])
             self.params[_MKIND] = np.where(duty, MEAN_DUTY_CMD, self.params[_MKIND])
 
+    def bounds(self) -> dict:
+        """What this limiter promises, per channel, as plain lists (a trace's ``meta.limits``, which
+        :mod:`rtctl.check` verifies sample by sample): ``max_voltage`` (V), ``max_step`` (V per
+        sample), the running-mean bound (``mean_kind``, ``mean_bound``, ``mean_alpha`` per sample,
+        ``mean_scale``, ``mean_threshold``) and ``temperature`` (degC)."""
+        p = self.params
+        return {"fs": self.fs, "max_voltage": p[_VMAX].tolist(), "max_step": p[_DVMAX].tolist(),
+                "mean_kind": p[_MKIND].astype(int).tolist(), "mean_bound": p[_MBOUND].tolist(),
+                "mean_alpha": p[_MALPHA].tolist(), "mean_scale": p[_MSCALE].tolist(),
+                "mean_threshold": p[_MCMD].tolist(), "temperature": p[_TMAX].tolist()}
+
     @property
     def temperature(self) -> np.ndarray:
         return self.state[_T]

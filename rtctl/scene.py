@@ -307,18 +307,15 @@ def _item_name(x: Any, i: int) -> str:
 
 def _value(spec: Key, v: Any, path: str, origin: str) -> Any:
     kind = spec.kind
-    if kind == "strs":
-        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
-            raise _fail(origin, path, v, "must be a list of strings")
-        return list(v)
-    if kind in ("floats", "ints"):
+    if kind in ("floats", "ints", "strs"):
         if not isinstance(v, list):
-            raise _fail(origin, path, v, f"must be a list of {'numbers' if kind == 'floats' else 'integers'}")
+            what = {"floats": "numbers", "ints": "integers", "strs": "strings"}[kind]
+            raise _fail(origin, path, v, f"must be a list of {what}")
         if spec.length is not None and len(v) != spec.length:
             raise _fail(origin, path, v, f"must have exactly {spec.length} items")
         if len(v) < spec.min_items or (spec.max_items is not None and len(v) > spec.max_items):
             raise _fail(origin, path, v, f"must have {spec.min_items} to {spec.max_items} items")
-        one = Key(kind[:-1], unit=spec.unit, lo=spec.lo, hi=spec.hi, open_lo=spec.open_lo)
+        one = Key(kind[:-1], unit=spec.unit, lo=spec.lo, hi=spec.hi, open_lo=spec.open_lo, choices=spec.choices)
         return [_scalar(one, x, f"{path}.{i}", origin) for i, x in enumerate(v)]
     return _scalar(spec, v, path, origin)
 

@@ -20,7 +20,7 @@ class Key:
     """One scalar or list key.
 
     ``kind`` is one of ``float``, ``int``, ``str``, ``bool``, ``floats`` (list of numbers),
-    ``ints`` (list of integers), ``strs`` (list of strings), ``table`` (free keys; checked by the code that reads it).
+    ``ints`` (list of integers), ``strs`` (list of strings, each one of ``choices`` if given), ``table`` (free keys; checked by the code that reads it).
     ``lo``/``hi`` bound numbers (and every list element);
     ``open_lo`` excludes ``lo``. ``choices`` restricts strings. ``length`` fixes a list length.
     """
@@ -113,6 +113,35 @@ def _mismatch() -> Table:
     return Table({k: Key("float", 1.0, "", f"factor on {v}; {secret}", 0.1, 10.0) for k, v in what.items()},
                  "relative factors the simulated hardware has and the rig's models do not know (1: none); "
                  "the limiter, observer and controller keep the scene's values")
+
+
+def _faults() -> Table:
+    # the vocabulary lives with the injector (rtctl.io.faults.KINDS); the names are repeated here
+    # so that validating a scene imports no model (a test keeps the two equal)
+    kinds = ("sensed_nan", "sensed_inf", "adc_saturated", "sensed_zero", "sensed_frozen", "electrode_open",
+             "block_dropped", "latency_spike", "xrun_burst", "amp_clipped", "finger_slam", "finger_lift",
+             "device_stopped", "byte_flip", "byte_drop", "byte_dup")
+    one = Table(
+        {
+            "kind": Key("str", REQUIRED, "", "what goes wrong (docs/faults.md: each kind and what the run must do)", choices=kinds),
+            "at": Key("float", REQUIRED, "s", "when it starts: at the start of block floor(at fs / block)", 0.0, 86400.0),
+            "blocks": Key("int", 1, "", "how many blocks it lasts; 0 = to the end of the run (electrode_open, device_stopped, finger_* always last)", 0, 10**9),
+            "row": Key("int", -1, "", "the sensed row (sensed_*, adc_saturated, electrode_open) or drive channel (amp_clipped) it hits; -1 = every one", -1, 4095),
+            "value": Key("float", 0.0, "", "latency_spike: blocks late (1-63); amp_clipped: the amplifier's clip level as a fraction of max_voltage; finger_slam: the contact force as a multiple of finger.preload; byte_*: the fraction of bytes hit; else unused (0 = the kind's default)", 0.0, 1e3),
+        },
+        "faults at a time",
+        many=True,
+    )
+    return Table(
+        {
+            "inject": one,
+            "random": Key("int", 0, "", "faults drawn at random (seeded by io.faults.seed) besides `inject`: kind, start, length and row (at most 64 faults in all)", 0, 64),
+            "seed": Key("int", 1, "", "seed of the random faults", 0, 2**63 - 1),
+            "kinds": Key("strs", (), "", "the kinds random faults are drawn from; [] = every kind the backend and scene can take", choices=kinds, max_items=64),
+        },
+        "faults the simulated device injects (backend sim, `rtctl emulate audio|serial`): it is the device "
+        "misbehaving; the rig is never told (docs/faults.md)",
+    )
 
 
 PIEZO_TYPES = ("bimorph", "pvdf")
@@ -450,6 +479,7 @@ SCENE = Table(
                 "retries": Key("int", 3, "", "serial resends of one frame before the device counts as lost", 0, 100),
                 "keepalive": Key("float", 0.05, "s", "longest time between serial frames (the device's watchdog drops every pin after 4x this)", 0.001, 10.0),
                 "mismatch": _mismatch(),
+                "faults": _faults(),
             },
             "where blocks go",
         ),

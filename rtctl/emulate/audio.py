@@ -95,6 +95,16 @@ class Plant:
         self.sensed = np.zeros((row0, period))
         self.truth = np.zeros((ch0, len(TRUTH_NAMES), period))
         self.groups = [g for g, _, _ in groups]
+        # [io.faults]: the emulated device misbehaving; the plant then runs on what the amplifier
+        # passes (``plant_drive``), the faults' drive and readings around the groups' kernels
+        from ..io import faults as fault_mod
+
+        self.faults = None
+        plant_drive = self.drive
+        if fault_mod.active(scene):
+            ctx = fault_mod.context(scene, fault_mod.AUDIO, n_sensed=row0)
+            self.faults = fault_mod.sim_injector(scene, fault_mod.plan(scene, ctx), ctx)
+            plant_drive = np.zeros_like(self.drive)
         self.rec = None  # the --truth ring (record_ring)
         # for the --truth traces: which device this was (its mismatch is the simulated device's own)
         self.meta = {"scene": scene.scene.name, "scene_source": str(scene.source), "overrides": list(scene.overrides),
@@ -105,7 +115,10 @@ class Plant:
                   "finger keeps the load the scene starts with", file=sys.stderr)
         # The simulated-group contract (rtctl.io.sim): kernel(*args, drive, sensed, truth) -> bits,
         # here writing each block's currents straight into ``sensed`` (no latency of its own).
-        self.calls = [(g.kernel, (*g.args, self.drive[ch], self.sensed[sr], self.truth[ch])) for g, ch, sr in groups]
+        self.calls = [(g.kernel, (*g.args, plant_drive[ch], self.sensed[sr], self.truth[ch])) for g, ch, sr in groups]
+        if self.faults is not None:
+            before, after = self.faults.calls(self.drive, plant_drive, self.sensed)
+            self.calls = before + self.calls + after
         for kernel, args in self.calls:  # compile (or load) now, then back to rest
             kernel(*args)
         self.reset()
@@ -139,6 +152,8 @@ class Plant:
         """Every simulated group at rest (a new run starts from zero state, as on ``sim``)."""
         for g in self.groups:
             g.reset()
+        if self.faults is not None:
+            self.faults.reset()
         self.drive[:] = 0.0
         self.sensed[:] = 0.0
         self.truth[:] = 0.0

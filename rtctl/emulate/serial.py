@@ -24,7 +24,10 @@ The emulator keeps its own descriptor of the slave open, so a host closing the p
 and a new open works. Faults for tests: ``--drop-byte-every N`` (every Nth byte from the host is
 lost), ``--garbage-every N`` (random bytes before every Nth answer), ``--corrupt-every N`` (one
 bit flipped in every Nth answer), ``--stall-after S`` (S seconds after the first valid frame it
-stops answering and ignores frames, port open), ``--mute`` (never answers).
+stops answering and ignores frames, port open), ``--mute`` (never answers). The scene's
+``[io.faults]`` (docs/faults.md) adds ``byte_flip``/``byte_dup`` (answers) and ``byte_drop`` (host
+bytes), each a fraction of the bytes in its window, and ``device_stopped``, timed from the run's
+first PINS frame.
 """
 
 from __future__ import annotations
@@ -271,21 +274,32 @@ class Firmware:
 
 
 class Faults:
-    """Injected line faults (all off by default)."""
+    """Injected line faults (all off by default): every Nth byte or answer (the options), and the
+    scene's ``[io.faults]`` byte faults, each a fraction of the bytes within its time window
+    (``scheduled``: ``(kind, from s, to s, fraction)``, seconds since the first valid PINS frame,
+    which :func:`serve` keeps in ``now``)."""
 
-    def __init__(self, drop_every=0, garbage_every=0, corrupt_every=0, seed=1):
+    def __init__(self, drop_every=0, garbage_every=0, corrupt_every=0, seed=1, scheduled=()):
         self.drop_every, self.garbage_every, self.corrupt_every = drop_every, garbage_every, corrupt_every
         self.rng = random.Random(seed)
         self.rx = self.tx = 0
-        self.dropped = self.garbage = self.corrupted = 0
+        self.dropped = self.garbage = self.corrupted = self.duplicated = 0
+        self.scheduled = list(scheduled)
+        self.now = None
+
+    def _p(self, kind: str) -> float:
+        if self.now is None:
+            return 0.0
+        return max((p for k, t0, t1, p in self.scheduled if k == kind and t0 <= self.now < t1), default=0.0)
 
     def incoming(self, data: bytes) -> bytes:
-        if self.drop_every <= 0:
+        p = self._p("byte_drop")
+        if self.drop_every <= 0 and p <= 0:
             return data
         keep = bytearray()
         for b in data:
             self.rx += 1
-            if self.rx % self.drop_every:
+            if (self.drop_every <= 0 or self.rx % self.drop_every) and not (p > 0 and self.rng.random() < p):
                 keep.append(b)
             else:
                 self.dropped += 1
@@ -299,6 +313,18 @@ class Faults:
             b[i] ^= 1 << self.rng.randrange(8)
             frame = bytes(b)
             self.corrupted += 1
+        flip, dup = self._p("byte_flip"), self._p("byte_dup")
+        if flip > 0 or dup > 0:
+            out = bytearray()
+            for x in frame:
+                if flip > 0 and self.rng.random() < flip:
+                    x ^= 1 << self.rng.randrange(8)
+                    self.corrupted += 1
+                out.append(x)
+                if dup > 0 and self.rng.random() < dup:
+                    out.append(x)
+                    self.duplicated += 1
+            frame = bytes(out)
         if self.garbage_every > 0 and self.tx % self.garbage_every == 0:
             junk = bytes(self.rng.randrange(256) for _ in range(self.rng.randrange(1, 17)))
             frame = junk + frame
@@ -306,10 +332,35 @@ class Faults:
         return frame
 
 
-def serve(fw: Firmware, master: int, faults: Faults, stop, stall_after=None, mute=False, log=None) -> None:
-    """The firmware's main loop until ``stop()`` is true."""
+def scene_faults(scene) -> tuple[list, float]:
+    """The scene's ``[io.faults]`` as this emulator injects them: ``(byte faults as (kind, from s,
+    to s, fraction of bytes), when the device stops answering (inf: never))``, seconds after the
+    first valid PINS frame (the run's first block); one line (SceneError) for a kind a pin
+    controller's line cannot take."""
+    from ..io import faults as F
+
+    if not F.active(scene):
+        return [], math.inf
+    ctx = F.context(scene, F.SERIAL)
+    period = scene.timing.block / scene.timing.fs
+    scheduled, stall = [], math.inf
+    for f in F.plan(scene, ctx):
+        t0 = f.start * period
+        if f.kind == "device_stopped":
+            stall = min(stall, t0)
+            continue
+        t1 = math.inf if f.stop >= 2**62 else f.stop * period
+        scheduled.append((f.kind, t0, t1, f.value or 0.01))
+    return scheduled, stall
+
+
+def serve(fw: Firmware, master: int, faults: Faults, stop, stall_after=None, mute=False, log=None,
+          fault_stall=math.inf) -> None:
+    """The firmware's main loop until ``stop()`` is true. The scene's faults count time from the
+    first valid PINS frame (a run's first block: HELLO comes while its rig is still being built);
+    ``fault_stall`` is when, on that clock, the device stops answering."""
     dec = P.Decoder()
-    first_valid = None
+    first_valid = first_pins = None
     while not stop():
         try:  # wake for a byte or for the next plant chunk, whichever comes first
             ready, _, _ = select.select([master], [], [], min(fw.wait(time.monotonic()), 0.01))
@@ -326,11 +377,16 @@ def serve(fw: Firmware, master: int, faults: Faults, stop, stall_after=None, mut
                     raise
                 data = b""  # no slave open: cannot happen while we hold one, but do not spin
                 time.sleep(fw.B / fw.fs)
+            faults.now = None if first_pins is None else now - first_pins
             for f in dec.feed(faults.incoming(data)):
                 if f.error is None and first_valid is None:
                     first_valid = now
+                if f.error is None and f.kind == P.PINS and first_pins is None:
+                    first_pins = now
+                faults.now = None if first_pins is None else now - first_pins
                 stalled = mute or (stall_after is not None and first_valid is not None
-                                   and now - first_valid >= stall_after)
+                                   and now - first_valid >= stall_after) or (
+                    faults.now is not None and faults.now >= fault_stall)
                 if stalled:
                     continue  # hung: reads and drops, answers nothing
                 answer = fw.on_frame(f, now)
@@ -357,7 +413,8 @@ def main(argv: list[str] | None = None) -> int:
             raise RtctlError(f"{name} = {v!r}: must be a positive number")
     fw = Firmware(sc, a.fs, a.chunk_ms * 1e-3, a.pulse_ms * 1e-3, max(a.settle_ms, 0.0) * 1e-3)
     fw.compile()
-    faults = Faults(a.drop_byte_every, a.garbage_every, a.corrupt_every, a.seed)
+    scheduled, stall = scene_faults(sc)
+    faults = Faults(a.drop_byte_every, a.garbage_every, a.corrupt_every, a.seed, scheduled)
     master, slave = pty.openpty()
     tty.setraw(slave)  # no echo, no line discipline: bytes pass as they are (0x00 included)
     fcntl.fcntl(master, fcntl.F_SETFL, fcntl.fcntl(master, fcntl.F_GETFL) | os.O_NONBLOCK)
@@ -368,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
         print(os.ttyname(slave), flush=True)
         fw.t0 = fw.last_valid = time.monotonic()
         fw.done = 0
-        serve(fw, master, faults, lambda: bool(flag), a.stall_after, a.mute, log)
+        serve(fw, master, faults, lambda: bool(flag), a.stall_after, a.mute, log, stall)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -378,7 +435,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"emulate serial: {fw.display} x{fw.n}: {c['frames']} frames, {c['bad']} rejected, "
           f"{c['pulses']} pulses, {c['watchdog_trips']} watchdog trips, {c['skipped_s']:.3f} s of "
           f"plant time skipped; injected: {faults.dropped} bytes dropped, {faults.garbage} garbage "
-          f"bytes, {faults.corrupted} answers corrupted", file=sys.stderr)
+          f"bytes, {faults.corrupted} answers corrupted, {faults.duplicated} bytes sent twice", file=sys.stderr)
     return 0
 
 

@@ -182,8 +182,10 @@ def _control(rig, rows) -> None:
             row.setdefault("command_v", {})[int(ctl.index[BANK, j])] = float(ctl.state[CMD, j])
             if sat:  # what the estimate shows at the cap (the run's final window), else the last one used
                 est = row.get("estimated_um")
-                row["reachable_um"] = est if est is not None else (row.get("reachable_um") or 0.0) + float(
-                    ctl.state[EST, j]) * 1e6
+                e = float(ctl.state[EST, j])  # NaN while a non-finite reading is in the window
+                if est is None and row.get("reachable_um", 0.0) is not None:
+                    est = (row.get("reachable_um") or 0.0) + e * 1e6 if math.isfinite(e) else None
+                row["reachable_um"] = est
 
 
 def _event_settles(rig, tip, t, freqs, t_end, start) -> list[dict]:

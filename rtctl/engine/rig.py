@@ -136,7 +136,18 @@ class Rig:
             ch0, row0 = ch0 + n, row0 + rows
         self.truth_names = TRUTH_NAMES
         self.sensed = np.zeros((row0, self.block))
-        self.device = SimDevice(groups, self.out, self.sensed, len(TRUTH_NAMES), hardware.factors)
+        injector, fingers = None, []
+        from ..io import faults
+
+        if faults.active(scene):
+            from ..io.sim import finger_states
+
+            ctx = faults.context(scene, n_sensed=row0)
+            injector = faults.sim_injector(scene, faults.plan(scene, ctx), ctx)
+            fingers = [t for (sim, _, _), g in zip(groups, scene.actuator)
+                       if (t := finger_states(sim, hardware, g)) is not None]
+        self.device = SimDevice(groups, self.out, self.sensed, len(TRUTH_NAMES), hardware.factors,
+                                injector, fingers)
         self.truth = self.device.truth
 
     def _build_backend(self, scene):

@@ -59,7 +59,7 @@ class _Progress:
 
 
 def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress: bool = False,
-        report: bool = True) -> RunResult:
+        report: bool = True, rig=None) -> RunResult:
     """Build the rig for ``scene`` and run it for ``timing.duration``.
 
     Parameters
@@ -79,17 +79,23 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     With ``control.calibrate = "auto"`` the calibration's measurement and fit run first
     (:func:`rtctl.engine.calibrate.auto`, written to ``out_dir/calibration.json``), and the rig is
     built on it.
+
+    ``rig``: a rig built for ``scene`` and run before (a campaign of runs on one rig): it and its
+    device are put back to rest and run again, nothing rebuilt.
     """
     from ..trace import TraceReader, TraceWriter
     from .rig import build
 
     calibrated = None
-    if scene.control.calibrate == "auto":
+    if rig is not None:
+        rig.reset()
+        rig.device.reset()
+    elif scene.control.calibrate == "auto":
         from .calibrate import auto
 
         scene, calibrated = auto(scene, out_dir, run, say=_stderr if progress else None)
     t_build = time.perf_counter()
-    rig = build(scene)
+    rig = build(scene) if rig is None else rig
     build_s = time.perf_counter() - t_build
     if calibrated is not None and out_dir is None:  # auto's temporary file: the rig has read it
         Path(scene.control.calibration).unlink(missing_ok=True)
@@ -112,7 +118,8 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         writer = TraceWriter(out / "trace", signals, fs, block, rig.channel_names,
                              meta={"scene": scene.to_dict(), "source": scene.source,
                                    "overrides": list(scene.overrides), "sensed_rows": rig.sensed_names,
-                                   "latency_blocks": scene.io.latency_blocks or int(rig.device.latency_blocks)})
+                                   "latency_blocks": scene.io.latency_blocks or int(rig.device.latency_blocks),
+                                   "limits": rig.limiter.bounds()})
     times = np.zeros(n_blocks)
     lates = np.zeros(n_blocks)
     missed = np.zeros(n_blocks, dtype=np.bool_)

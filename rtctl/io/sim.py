@@ -58,7 +58,7 @@ def _bimorph(models, g, gi, fs, block):
     plant = BimorphPlant(models.beam(g), Amplifier(g.amplifier.bandwidth), sense, models.finger(g),
                          n_modes=g.beam.modes)
     loads = [plant.finger]
-    for finger in _event_fingers(models, g).values():
+    for finger in [*_event_fingers(models, g).values(), *_fault_fingers(models, g)]:
         if finger not in loads:
             loads.append(finger)
     if len(loads) == 1:
@@ -193,6 +193,44 @@ def _event_fingers(models, g) -> dict:
     return {e.index: Models(e.scene_after, models.factors).finger(g) for e in schedule(models.scene)}
 
 
+def _fault_fingers(models, g) -> list:
+    """The finger loads the scene's finger faults switch group ``g`` to: lifted (None) and slammed
+    (:func:`rtctl.io.faults.slam_factor` times the force: the Maxwell stiffnesses and the moving
+    skin mass scaled by it, a stiffening contact); empty without finger faults."""
+    from .faults import slam_factor, wants_fingers
+
+    if not wants_fingers(models.scene) or not models.scene.finger.contact:
+        return []
+    from ..models import Models
+
+    s = slam_factor(models.scene)
+    f = dict(models.factors or {})
+    slammed = {k: f.get(k, 1.0) * s for k in ("finger_k0", "finger_branches", "finger_mass")}
+    return [None, Models(models.scene, {**f, **slammed}).finger(g)]
+
+
+def finger_states(group, models, g) -> tuple | None:
+    """``(target, col, lift, slam)`` for :func:`rtctl.io.faults.inject_finger` on a built group:
+    a bimorph group's load index (the lifted and slammed loads of :func:`_fault_fingers`), a pin
+    group's preloads (0 N lifted, :func:`~rtctl.io.faults.slam_factor` times the preload slammed);
+    None where no finger fault reaches it."""
+    from .faults import slam_factor
+
+    scene = models.scene
+    extra = _fault_fingers(models, g)
+    if not extra:
+        return None
+    if g.type == "bimorph":
+        loads = list(getattr(group, "loads", ()))
+        if not all(x in loads for x in extra):
+            return None
+        return group.load, 0, float(loads.index(extra[0])), float(loads.index(extra[1]))
+    if g.type in PIN_TYPES:
+        preload = float(group.params[0, 0])
+        return group.params, 0, 0.0, preload * slam_factor(scene)
+    return None
+
+
 def _group_events(models, g, group):
     """The :class:`GroupEvents` of a built group, or None when no event changes it; an event the
     group's plant cannot follow is refused in one line."""
@@ -271,17 +309,27 @@ class SimDevice(Backend):
     factors : dict, optional
         The ``io.mismatch`` factors the groups were built with (:func:`device_models`), for
         :meth:`stats` only.
+    faults : rtctl.io.faults.Injector, optional
+        The scene's ``[io.faults]``: the device misbehaving on its side of the contract. The
+        plant then runs on a copy of the drive (what the amplifier passes), never on the rig's.
+    fingers : list of tuple
+        :func:`finger_states` of the groups a finger fault reaches.
     """
 
-    def __init__(self, groups, drive: np.ndarray, sensed: np.ndarray, n_truth: int, factors=None):
+    def __init__(self, groups, drive: np.ndarray, sensed: np.ndarray, n_truth: int, factors=None,
+                 faults=None, fingers=()):
         self.groups = groups
         self.factors = dict(factors or {})
         self.sensed = sensed
         self._next = np.zeros_like(sensed)
         self.truth = np.zeros((drive.shape[0], n_truth, drive.shape[1]))
+        self.faults = faults
+        self._rig_drive = drive
+        self._drive = drive if faults is None else np.zeros_like(drive)
+        self._fingers = list(fingers)
         # Kernel arguments fixed once, with views into the buffers: nothing is allocated or
         # checked per block (a group's process() would check shapes every call).
-        self._calls = [(g.kernel, (*g.args, drive[ch], self._next[sr], self.truth[ch]))
+        self._calls = [(g.kernel, (*g.args, self._drive[ch], self._next[sr], self.truth[ch]))
                        for g, ch, sr in groups]
 
     #: Run the simulated groups inside the rig's block function (one call per block instead of
@@ -296,7 +344,7 @@ class SimDevice(Backend):
         block's readings (what :meth:`read` does); after them, every group advances by the block
         just limited (what :meth:`write` does). Each entry is ``(name, kernel, args, status
         map)``. None otherwise: the engine calls :meth:`read` and :meth:`write`."""
-        if not self.in_block:
+        if not self.in_block or self.faults is not None:
             return None
         before = [("sim read", deliver, (self._next, self.sensed), True)]
         after = [(f"sim group {i}", kernel, args, group_status) for i, (kernel, args) in enumerate(self._calls)]
@@ -311,11 +359,19 @@ class SimDevice(Backend):
     def read(self) -> int:
         """Fill ``sensed`` with the currents of the previous block (one block of latency)."""
         np.copyto(self.sensed, self._next)
-        return 0
+        if self.faults is None:
+            return 0
+        status = self.faults.sensed(self.sensed)  # what the faulty device delivers, and its own flags
+        return status | self.faults.guard(status)
 
     def write(self) -> int:
         """Advance every simulated group by the block now in ``drive`` (volts)."""
         status = 0
+        if self.faults is not None:
+            for target in self._fingers:
+                self.faults.finger(*target)
+            self.faults.drive(self._rig_drive, self._drive)
+            self.faults.count()
         for group_kernel, args in self._calls:
             status |= group_status(group_kernel(*args))
         return status
@@ -323,7 +379,13 @@ class SimDevice(Backend):
     def stats(self) -> dict:
         """``mismatch``: the factors the simulated device differs from the scene by (a report may
         know them; the rig does not use them), when there are any."""
-        return {"mismatch": dict(self.factors)} if self.factors else {}
+        out = {"mismatch": dict(self.factors)} if self.factors else {}
+        if self.faults is not None:
+            out["faults"] = self.faults.describe()
+            k = int(self.faults.ctl[0])
+            if any(f.kind == "device_stopped" and f.start <= k for f in self.faults.faults):
+                out["error"] = "the simulated device stopped answering (an injected fault)"
+        return out
 
     def compile(self) -> None:
         """Run the kernel once on the real buffers (compiles or loads it), then reset."""
@@ -355,6 +417,9 @@ class SimDevice(Backend):
                 for w in g.events.writes.get(event.index, ())]
 
     def reset(self) -> None:
+        if self.faults is not None:
+            self.faults.reset()
+            self._drive[:] = 0.0
         self._next[:] = 0.0
         self.sensed[:] = 0.0
         self.truth[:] = 0.0
