@@ -253,9 +253,12 @@ def _calibrate(args) -> int:
     from .engine.calibrate import calibrate, default_path, write
     from .engine.run import run
 
+    from .outpath import writable_file
+
     s = _load(args)
+    target = writable_file(args.out or default_path(s), "--out")  # before the measurement, not after it
     doc = calibrate(s, run, lambda text: print(f"rtctl: {text}", file=sys.stderr))
-    path = write(doc, args.out or default_path(s))
+    path = write(doc, target)
     doc["file"] = str(path)
     if args.json:
         _print_json(doc)

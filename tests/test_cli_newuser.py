@@ -229,3 +229,70 @@ def test_ctrl_c_says_how_long_the_run_went_and_where_its_trace_is(tmp_path):
     from rtctl.trace import TraceReader
 
     assert TraceReader(out_dir / "trace").n_blocks > blocks  # every run block, then the fade
+
+
+# --- outputs that cannot be written, images that are not files ------------------------------------
+
+def _unwritable(tmp_path):
+    """Paths no run can write into, with the words its one line must hold."""
+    a_file = tmp_path / "a-file"
+    a_file.write_text("x")
+    fifo = tmp_path / "a-fifo"
+    os.mkfifo(fifo)
+    cases = {"regular-file": (a_file, "is a regular file, not a directory"),
+             "under-a-file": (a_file / "sub", "cannot create the directory (Not a directory)"),
+             "fifo": (fifo, "is a FIFO (named pipe), not a directory"),
+             "proc": ("/proc/x", "cannot create the directory")}
+    if os.path.isdir("/sys"):
+        cases["sys"] = ("/sys/x", "cannot create the directory")
+    return cases
+
+
+def test_an_unwritable_out_is_refused_before_the_rig_is_built(tmp_path, monkeypatch):
+    import rtctl.engine.rig
+
+    built = []
+    original = rtctl.engine.rig.build
+    monkeypatch.setattr(rtctl.engine.rig, "build", lambda *a, **k: built.append(1) or original(*a, **k))
+    for name, (out, words) in _unwritable(tmp_path).items():
+        code, out_text, err = _call(["run", "line-bimorph-5", "--duration", "0.05", "--quiet", "--no-plot",
+                                     "--out", str(out)])
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1, (name, err)
+        assert lines[0].startswith(f"rtctl: error: --out {out}: ") and words in lines[0], (name, lines)
+        assert "give --out a directory you can write to" in lines[0]
+        assert out_text == "" and not built, name
+    assert (tmp_path / "a-file").read_text() == "x"  # the file given as --out is left as it was
+    # the same check passes a writable directory, and the run goes on to build its rig
+    code, _, err = _call(["run", "line-bimorph-5", "--duration", "0.02", "--quiet", "--no-plot",
+                          "--out", str(tmp_path / "new" / "dir")])
+    assert code == 0 and built, err
+    assert not [p for p in (tmp_path / "new" / "dir").iterdir() if p.name.startswith(".rtctl-probe")]
+
+
+def test_a_trace_name_taken_by_a_file_is_refused(tmp_path):
+    (tmp_path / "trace").write_text("not a trace")
+    code, _, err = _call(["run", "line-bimorph-5", "--duration", "0.02", "--quiet", "--out", str(tmp_path)])
+    assert code == 2 and "trace there is a regular file, where this writes a directory" in err, err
+    assert (tmp_path / "trace").read_text() == "not a trace"
+
+
+def test_unwritable_calibration_and_render_outputs_are_one_line(tmp_path):
+    code, _, err = _call(["calibrate", "line-bimorph-5", "--out", str(tmp_path)])
+    assert code == 2 and err.count("\n") == 1 and "is a directory, not a regular file" in err, err
+    code, _, err = _call(["calibrate", "line-bimorph-5", "--out", "/proc/x/cal.json"])
+    assert code == 2 and err.count("\n") == 1 and "cannot create its directory /proc/x" in err, err
+    from matplotlib import cbook
+
+    hopper = cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)
+    for name, (out, words) in _unwritable(tmp_path).items():
+        code, _, err = _call(["render", str(hopper), "--out", str(out)])
+        assert code == 2 and err.count("\n") == 1 and words in err, (name, err)
+
+
+def test_a_fifo_or_a_device_given_as_an_image_is_named_as_such(tmp_path):
+    fifo = tmp_path / "pipe.png"
+    os.mkfifo(fifo)
+    for path, kind in ((fifo, "a FIFO (named pipe)"), ("/dev/null", "a character device")):
+        code, _, err = _call(["render", str(path)])
+        assert code == 2 and err == f"rtctl: error: {path}: is {kind}, not an image file; give a regular image file\n"

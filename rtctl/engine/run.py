@@ -80,9 +80,12 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     (:func:`rtctl.engine.calibrate.auto`, written to ``out_dir/calibration.json``), and the rig is
     built on it.
     """
+    from ..outpath import writable_dir
     from ..trace import TraceReader, TraceWriter
     from .rig import build
 
+    if out_dir is not None:  # before anything runs: a bad directory is one line, not a lost run
+        writable_dir(out_dir, "--out", subdirs=("trace",), files=RUN_FILES + ("calibration.json",))
     calibrated = None
     if scene.control.calibrate == "auto":
         from .calibrate import auto

@@ -56,6 +56,10 @@ def main(argv=None) -> int:
     from rtctl.render.image import load_image
 
     image = load_image(args.image)
+    if args.out:
+        from rtctl.outpath import writable_dir
+
+        writable_dir(args.out, "--out")
     grid, hia = _DEFAULTS[args.method]
     kw = {"grid": args.grid or grid, "hia": args.hia if args.hia is not None else hia}
     if args.mm_per_px is not None:
