@@ -175,7 +175,12 @@ def _load(args):
     overrides = list(args.overrides)
     if getattr(args, "duration", None) is not None:
         overrides.append(f"timing.duration={args.duration!r}")
-    return scene.load(args.scene, overrides)
+    from .validity import check
+
+    s = scene.load(args.scene, overrides)
+    for w in check(s):  # a model near the edge of its validity: said once, before anything runs
+        print(f"rtctl: warning: {w}", file=sys.stderr)
+    return s
 
 
 def _print_json(obj) -> None:

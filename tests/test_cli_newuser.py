@@ -5,6 +5,7 @@ import argparse
 import contextlib
 import io
 import json
+import math
 import os
 import re
 import signal
@@ -296,3 +297,76 @@ def test_a_fifo_or_a_device_given_as_an_image_is_named_as_such(tmp_path):
     for path, kind in ((fifo, "a FIFO (named pipe)"), ("/dev/null", "a character device")):
         code, _, err = _call(["render", str(path)])
         assert code == 2 and err == f"rtctl: error: {path}: is {kind}, not an image file; give a regular image file\n"
+
+
+# --- values that run but leave a model's validity range -------------------------------------------
+
+def test_a_beam_shorter_than_thick_is_refused_naming_the_key_and_the_range(tmp_path):
+    code, out, err = _call(["run", "line-bimorph-5", "--duration", "0.02", "--quiet", "--out", str(tmp_path),
+                            "--set", "actuator.lateral.beam.length=1e-4"])
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and out == "", err
+    assert "actuator.lateral.beam.length = 0.0001 m is 0.167 times the beam's thickness 0.6 mm" in lines[0]
+    assert "Euler-Bernoulli" in lines[0] and "length / thickness >= 2.5 to run" in lines[0]
+    assert not (tmp_path / "trace").exists()
+
+
+def test_a_stubby_beam_runs_with_a_warning_in_the_summary(tmp_path):
+    code, out, err = _call(["run", "line-bimorph-5", "--duration", "0.02", "--quiet", "--no-plot", "--out",
+                            str(tmp_path), "--set", "actuator.lateral.beam.length=3e-3"])
+    assert code == 0, err
+    # Timoshenko's first-order shift of the first cantilever mode, computed here from its closed
+    # form: (1.8751 h / L)^2 (1 + 2 (1 + 0.3) / (5/6)) / 24 at L / h = 5
+    shift = (1.875104 / 5) ** 2 * (1 + 2 * 1.3 / (5 / 6)) / 24
+    assert f"by about {100 * shift:.2g} %" == "by about 2.4 %"
+    warned = [ln for ln in err.splitlines() if ln.startswith("rtctl: warning: actuator.lateral.beam.length")]
+    assert len(warned) == 1 and "is 5 times the beam's thickness" in warned[0] and "by about 2.4 %" in warned[0]
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert any("Euler-Bernoulli" in w for w in s["warnings"])
+    # a slender beam (25 x its thickness, the bundled one) says nothing
+    code, _, err = _call(["check", "line-bimorph-5"])
+    assert code == 0 and "warning" not in err, err
+
+
+def test_the_thresholds_sit_where_the_estimate_crosses_1_and_10_percent():
+    from rtctl.validity import BEAM_NU, REFUSE, WARN, _ratio_at, shear_error
+
+    for err in (WARN, REFUSE):
+        r = _ratio_at(err, BEAM_NU)
+        assert shear_error(1.875104 / r, BEAM_NU) == pytest.approx(err, rel=1e-12)
+    # the Kirchhoff plate: a 2 cm glass plate keeping modes to 4 kHz warns, 8 cm is refused
+    code, _, err = _call(["check", "pvdf-6x8", "--set", "actuator.cells.plate.thickness=0.02"])
+    assert code == 0 and "rtctl: warning: actuator.cells.plate.thickness = 0.02 m" in err and "Kirchhoff" in err
+    code, _, err = _call(["check", "pvdf-6x8", "--set", "actuator.cells.plate.thickness=0.05",
+                          "--set", "actuator.cells.plate.max_mode_hz=20000"])
+    assert code == 2 and err.count("\n") == 1 and "lower max_mode_hz or thin the plate" in err, err
+
+
+def test_an_sma_prestrain_past_full_transformation_is_refused():
+    from types import SimpleNamespace
+
+    from rtctl.errors import SceneError
+    from rtctl.plant.sma import SmaTaxel
+    from rtctl.validity import SMA_SHEAR_MAX, _sma
+
+    t = SmaTaxel()
+    limit = SMA_SHEAR_MAX * math.pi * t.D ** 2 * t.N / (2 * t.d)  # closed-coil spring: gamma = d x / (pi D^2 N)
+    _sma("s.toml", "actuator.pins", SimpleNamespace(prestrain=0.99 * limit))
+    with pytest.raises(SceneError, match=r"actuator.pins.sma.prestrain = .* shear strain of 7\S* % at full travel, beyond the 6.9 %"):
+        _sma("s.toml", "actuator.pins", SimpleNamespace(prestrain=1.01 * limit))
+
+
+@pytest.mark.parametrize("sets, shunt_below, fs_below", [
+    (["timing.fs=192000"], "52.3", "100000"),
+    (["actuator.lateral.beam.length=1.0"], "3.14", "1500"),
+], ids=["fs-192k", "beam-1m"])
+def test_a_shunt_the_user_never_set_is_named_by_its_key(tmp_path, sets, shunt_below, fs_below):
+    args = ["run", "line-bimorph-5", "--duration", "0.02", "--quiet", "--no-plot", "--out", str(tmp_path)]
+    code, _, err = _call(args + [a for s in sets for a in ("--set", s)])
+    assert code == 2 and err.count("\n") == 1, err
+    assert "actuator.lateral.sense.shunt = 100 ohm is too large" in err
+    assert f"set actuator.lateral.sense.shunt below {shunt_below} ohm, or timing.fs below {fs_below} Hz" in err
+    # the values it names are the way out: each one alone makes the scene run
+    for fix in (f"actuator.lateral.sense.shunt={shunt_below}", f"timing.fs={fs_below}"):
+        code, _, err = _call(args + [a for s in sets + [fix] for a in ("--set", s)] + ["--duration", "0.05"])
+        assert code == 0, (fix, err)

@@ -84,6 +84,9 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     from ..trace import TraceReader, TraceWriter
     from .rig import build
 
+    from ..validity import check as model_validity
+
+    validity = model_validity(scene)  # a model far outside its range is refused here
     if out_dir is not None:  # before anything runs: a bad directory is one line, not a lost run
         writable_dir(out_dir, "--out", subdirs=("trace",), files=RUN_FILES + ("calibration.json",))
     calibrated = None
@@ -153,7 +156,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         "deadline_misses": misses,
         **timing,
         "faults": faults,
-        "warnings": [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
+        "warnings": validity + [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
         "build_s": build_s,
         # how the block ran: one composed function or stages from Python; cached kernels or not
         "block_function": rig.compose_note,
