@@ -257,7 +257,6 @@ def _model(args) -> int:
 def _calibrate(args) -> int:
     from .engine.calibrate import calibrate, default_path, write
     from .engine.run import run
-
     from .outpath import writable_file
 
     s = _load(args)

@@ -117,5 +117,6 @@ def _sma(src, key, s) -> None:
     if gamma > SMA_SHEAR_MAX:
         limit = SMA_SHEAR_MAX * math.pi * t.D ** 2 * t.N / (2.0 * t.d)
         raise SceneError(f"{src}: {key}.sma.prestrain = {s.prestrain:g} m strains the spring wire to a shear strain "
-                         f"of {100 * gamma:.3g} % at full travel, beyond the {100 * SMA_SHEAR_MAX:.2g} % at which NiTi has "
-                         f"transformed fully (the model's plateau has no end); use a prestrain up to {limit:.3g} m")
+                         f"of {100 * gamma:.3g} % at full travel, beyond the {100 * SMA_SHEAR_MAX:.2g} % at which "
+                         f"NiTi has transformed fully (the model's plateau has no end); use a prestrain up to "
+                         f"{limit:.3g} m")

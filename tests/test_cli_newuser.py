@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from rtctl.cli import _parser, main
@@ -229,7 +230,10 @@ def test_ctrl_c_says_how_long_the_run_went_and_where_its_trace_is(tmp_path):
     assert os.path.samefile(m.group(3), out_dir)
     from rtctl.trace import TraceReader
 
-    assert TraceReader(out_dir / "trace").n_blocks > blocks  # every run block, then the fade
+    # every run block, the 30 ms raised-cosine release (45 blocks), then 0 V while the tips settle
+    assert s["stop"]["by"] == "interrupt" and s["stop"]["fade"] == "raised cosine"
+    tail = round(s["stop"]["settle_s"] * s["fs"] / s["block"])
+    assert TraceReader(out_dir / "trace").n_blocks == blocks + 45 + tail and tail > 0
 
 
 # --- outputs that cannot be written, images that are not files ------------------------------------
@@ -352,7 +356,8 @@ def test_an_sma_prestrain_past_full_transformation_is_refused():
     t = SmaTaxel()
     limit = SMA_SHEAR_MAX * math.pi * t.D ** 2 * t.N / (2 * t.d)  # closed-coil spring: gamma = d x / (pi D^2 N)
     _sma("s.toml", "actuator.pins", SimpleNamespace(prestrain=0.99 * limit))
-    with pytest.raises(SceneError, match=r"actuator.pins.sma.prestrain = .* shear strain of 7\S* % at full travel, beyond the 6.9 %"):
+    with pytest.raises(SceneError, match=r"actuator.pins.sma.prestrain = .* shear strain of 7\S* % at full "
+                                         r"travel, beyond the 6.9 %"):
         _sma("s.toml", "actuator.pins", SimpleNamespace(prestrain=1.01 * limit))
 
 
@@ -370,3 +375,62 @@ def test_a_shunt_the_user_never_set_is_named_by_its_key(tmp_path, sets, shunt_be
     for fix in (f"actuator.lateral.sense.shunt={shunt_below}", f"timing.fs={fs_below}"):
         code, _, err = _call(args + [a for s in sets + [fix] for a in ("--set", s)] + ["--duration", "0.05"])
         assert code == 0, (fix, err)
+
+
+# --- how a run ends: a requested stop releases smoothly and waits for the tips, a fault is quick ----
+
+def test_the_end_of_a_run_releases_smoothly_and_the_trace_runs_until_the_tips_settle(tmp_path):
+    from rtctl.trace import TraceReader
+
+    s, _ = _run_json(tmp_path, "line-bimorph-5", "--set", "timing.stop_fade=0.04")
+    fs, block = s["fs"], s["block"]
+    run = round(s["duration_s"] * fs)
+    fade = round(0.04 * fs)
+    r = TraceReader(tmp_path / "trace")
+    drive, tip = r.signal("drive"), r.signal("tip_um")
+    assert s["stop"] == {"by": "end", "fade": "raised cosine", "fade_s": 0.04, "settle_s": s["stop"]["settle_s"]}
+    # the release: each channel's drive is its tone x under g = (1 + cos(pi k / N)) / 2; a step
+    # of x g is at most x's largest step plus max|x| pi / (2 N), where a one-block fade stepped
+    # up to 140 V / 32 = 4.4 V
+    steps = np.abs(np.diff(drive[:, run - 1:run + fade], axis=1)).max(axis=1)
+    before = drive[:, run - fade:run]
+    bound = np.abs(np.diff(before, axis=1)).max(axis=1) + np.abs(before).max(axis=1) * np.pi / (2 * fade)
+    assert np.all(steps <= bound * (1 + 1e-9)), (steps, bound)
+    assert steps.max() < 0.5
+    assert np.all(drive[:, run + fade - 1:] == 0.0)
+    # the window itself: each tone, fitted (least squares, its own frequency) to the 10 ms before
+    # the stop and carried on, times the raised cosine, is what the limiter let out
+    t = np.arange(run + fade) / fs
+    k = np.arange(1, fade + 1)
+    g = np.where(k < fade, 0.5 * (1 + np.cos(np.pi * k / fade)), 0.0)
+    for c, row in enumerate(s["channels"]):
+        w = 2 * np.pi * row["freq_hz"]
+        basis = np.column_stack([np.sin(w * t), np.cos(w * t)])
+        coef, *_ = np.linalg.lstsq(basis[run - 480:run], drive[c, run - 480:run], rcond=None)
+        np.testing.assert_allclose(drive[c, run:run + fade], (basis[run:] @ coef) * g,
+                                   atol=1e-6 * row["v_peak"], err_msg=row["name"])
+    # the settle criterion is the model's (60 dB below its slowest free oscillation); the
+    # simulated truth shows the tips really are still by then: within 60 dB of their peak
+    tail = r.n_blocks * block - run - fade
+    assert tail == round(s["stop"]["settle_s"] * fs / block) * block and tail > 0
+    peak = np.abs(tip[:, :run]).max(axis=1)
+    last = np.abs(tip[:, -block:]).max(axis=1)
+    assert np.all(last <= 1e-3 * peak), last / peak
+    assert np.any(np.abs(tip[:, run + fade:run + fade + block]).max(axis=1) > 1e-2 * peak)  # not still at 0 V
+
+
+def test_a_fault_keeps_the_one_block_fade_and_ends_the_trace_there(tmp_path):
+    from rtctl.trace import TraceReader
+
+    sets = ["actuator.lateral.limits.temperature=25.0001", "actuator.lateral.limits.thermal_tau=0.001",
+            "actuator.lateral.limits.loss_tangent=0.5"]
+    code, _, err = _call(["run", "line-bimorph-5", "--duration", "0.3", "--quiet", "--no-plot", "--out", str(tmp_path),
+                          *[a for s in sets for a in ("--set", s)]])
+    assert code == 1 and "over temperature" in err, err
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["stop"] == {"by": "fault", "fade": "linear", "fade_s": s["block"] / s["fs"], "settle_s": 0.0}
+    r = TraceReader(tmp_path / "trace")
+    run = round(s["duration_s"] * s["fs"] / s["block"])
+    assert r.n_blocks == run + 1
+    drive = r.signal("drive")
+    assert np.all(drive[:, -1] == 0.0) and np.any(drive[:, -s["block"] - 1] != 0.0)
