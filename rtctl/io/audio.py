@@ -416,6 +416,7 @@ class AudioBackend(Backend):
         status = 0
         k_read = 0
         end = None  # blocks to deliver once the fade is done (the device runs on, silent)
+        held = False  # the controllers hold their commands (a requested stop began)
         interrupted = False
         # A Python callback needs the GIL once per block: no cyclic-GC pause (can be
         # milliseconds) while running, and a holder of the GIL yields it within a quarter block.
@@ -445,6 +446,12 @@ class AudioBackend(Backend):
                         stop = on_block(k, slot)
                         if (stop or k_read >= n_blocks) and not ctl[K.STOP_REQ]:
                             ctl[K.STOP_REQ] = 1
+                    if not held and ctl[K.STOP_BEGUN] and rig.limiter.smooth_stop:
+                        # a requested stop began in the device thread: the controllers hold their
+                        # commands from here (a block or two into the release, as this thread
+                        # trails the device's), so feedback does not answer the release
+                        held = True
+                        getattr(rig, "hold_control", lambda: None)()
                     if end is None and ctl[K.STOP_BEGUN] and rig.limiter.done:
                         # the fade's last block is among these; after a requested stop's fade the
                         # device runs on silent until the model's tips have settled
