@@ -194,7 +194,12 @@ def _load(args):
     overrides = list(args.overrides)
     if getattr(args, "duration", None) is not None:
         overrides.append(f"timing.duration={args.duration!r}")
-    return scene.load(args.scene, overrides)
+    from .validity import check
+
+    s = scene.load(args.scene, overrides)
+    for w in check(s):  # a model near the edge of its validity: said once, before anything runs
+        print(f"rtctl: warning: {w}", file=sys.stderr)
+    return s
 
 
 def _print_json(obj) -> None:
@@ -271,10 +276,12 @@ def _model(args) -> int:
 def _calibrate(args) -> int:
     from .engine.calibrate import calibrate, default_path, write
     from .engine.run import run
+    from .outpath import writable_file
 
     s = _load(args)
+    target = writable_file(args.out or default_path(s), "--out")  # before the measurement, not after it
     doc = calibrate(s, run, lambda text: print(f"rtctl: {text}", file=sys.stderr))
-    path = write(doc, args.out or default_path(s))
+    path = write(doc, target)
     doc["file"] = str(path)
     if args.json:
         _print_json(doc)

@@ -27,3 +27,7 @@ class DeviceError(RtctlError, OSError):
 
 class RunAborted(RtctlError, RuntimeError):
     """The loop stopped on a fault after ramping the outputs to zero."""
+
+
+class OutputError(RtctlError, OSError):
+    """An output directory or file cannot be written: names the path, the cause and the fix."""

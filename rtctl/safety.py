@@ -3,8 +3,11 @@
 Per channel and sample, in this order:
 
 1. a non-finite request (NaN/Inf from any upstream bug) becomes 0 V and raises ``NONFINITE``;
-2. during a shutdown the request is ignored and replaced by a linear fade of the last output to
-   zero (so a fault brings every output to 0 V within the fade length, one block by default);
+2. during a fault's shutdown the request is ignored and replaced by a linear fade of the last
+   output to zero (so a fault brings every output to 0 V within the fade length, one block by
+   default); during a requested stop's (end of run, Ctrl-C) the request is multiplied by a
+   raised-cosine release ``(1 + cos(pi k / N)) / 2`` over ``timing.stop_fade`` (tens of ms: the
+   stimulus fades out instead of ending in a tap), and every later step still applies;
 3. the voltage is clipped to +-``max_voltage`` (``LIMIT_VOLTAGE``);
 4. the change per sample is clipped to ``min(slew, current / C) / fs`` (``LIMIT_SLEW``): a piezo is a
    capacitor, so the drive current is ``C dV/dt`` and limiting the slope limits the current;
@@ -74,6 +77,10 @@ STATUS_NAMES = {
     CONTROL_FROZEN: "amplitude control frozen (no usable estimate: drive held, never raised)",
     TRACE_DROPPED: "trace record dropped (the trace ring was full; the block itself ran)",
 }
+
+#: Shapes of a shutdown fade (``fade[2]``): linear (a fault: the shortest fade the slew bound
+#: allows) or raised cosine (a requested stop: zero slope at both ends, felt as a smooth release).
+FADE_LINEAR, FADE_COSINE = 0, 1
 
 # limiter state rows: last output V, temperature, fade start V, running means (see below)
 _V, _T, _FADE_FROM, _MEAN_P, _MEAN_N = range(5)
@@ -176,7 +183,8 @@ def limit_block(x, state, params, fade, counts):
     ``_JOULE`` 1 / R for a coil, 0 for a piezo; ``_MKIND`` the kind of mean bound, ``_MBOUND``
     its bound (V or a fraction), ``_MALPHA`` 1 / (fs tau_mean), ``_MSCALE`` 1 / V_max^2 for duty,
     ``_MCMD`` the pin-command threshold for ``MEAN_DUTY_CMD``).
-    ``fade`` int64 (2,): samples done and length of a shutdown fade (length 0 = running).
+    ``fade`` int64 (3,): samples done and length of a shutdown fade (length 0 = running), and its
+    shape (``FADE_LINEAR`` or ``FADE_COSINE``).
     ``counts`` int64 (3, n_channels): samples voltage-limited, slew-limited and mean-limited.
 
     Per channel, passes over the contiguous row: (1) NaN/Inf -> 0 or the fade, voltage clip;
@@ -189,13 +197,14 @@ def limit_block(x, state, params, fade, counts):
     """
     n_ch, n = x.shape
     fading = fade[1] > 0
+    hard = fading and fade[2] == FADE_LINEAR
     status = 0
     for c in range(n_ch):
         row = x[c]
         vmax = params[_VMAX, c]
         dvmax = params[_DVMAX, c]
         v0 = state[_V, c]
-        if fading:  # the request is ignored: fade from the last output to zero
+        if hard:  # the request is ignored: fade from the last output to zero
             f0 = state[_FADE_FROM, c]
             for i in range(n):
                 k = fade[0] + i + 1
@@ -211,6 +220,11 @@ def limit_block(x, state, params, fade, counts):
                 for i in range(n):
                     if not math.isfinite(row[i]):
                         row[i] = 0.0
+            if fading:  # a requested stop: the request under a raised-cosine release
+                w = math.pi / fade[1]
+                for i in range(n):
+                    k = fade[0] + i + 1
+                    row[i] *= 0.5 * (1.0 + math.cos(w * k)) if k < fade[1] else 0.0
         n_v = 0
         for i in range(n):
             v = row[i]
@@ -237,7 +251,7 @@ def limit_block(x, state, params, fade, counts):
                 status |= LIMIT_SLEW
         kind = params[_MKIND, c]
         if kind != MEAN_OFF:
-            status |= _mean_stage(row, state, params, counts, c, v0, dvmax, vmax, kind, fading)
+            status |= _mean_stage(row, state, params, counts, c, v0, dvmax, vmax, kind, hard)
         heat = abs(row[0] * (row[0] - v0))
         joule = row[0] * row[0]
         for i in range(1, n):
@@ -322,6 +336,17 @@ def _mean_stage(row, state, params, counts, c, v0, dvmax, vmax, kind, fading):
     return status
 
 
+@kernel
+def fade_length(state, params):
+    """Shortest linear shutdown fade, samples, that the slew bound lets reach 0 V from the last
+    outputs (see :meth:`Limiter.shutdown`); callable from a device thread."""
+    need = 0.0
+    for c in range(state.shape[1]):
+        if params[_DVMAX, c] > 0.0:
+            need = max(need, abs(state[_V, c]) / params[_DVMAX, c])
+    return int(math.floor(need)) + 1
+
+
 class Limiter:
     """Per-channel limits and state of the final limiter.
 
@@ -398,7 +423,7 @@ class Limiter:
         self.params[_MSCALE] = 1.0 / vmax**2
         self.params[_MCMD] = np.inf  # pin-command threshold (commands_only)
         self.state = np.zeros((5, n))
-        self.fade = np.zeros(2, dtype=np.int64)
+        self.fade = np.zeros(3, dtype=np.int64)
         self.counts = np.zeros((3, n), dtype=np.int64)
         self.reset()
 
@@ -411,19 +436,29 @@ class Limiter:
         """Limit ``x`` (n_channels, n) in place; return the status bits."""
         return limit_block(x, *self.args)
 
-    def shutdown(self, n_samples: int) -> int:
-        """Fade every output linearly from its last value to 0 V; return the fade length.
+    def shutdown(self, n_samples: int, smooth: bool = False) -> int:
+        """Fade every output to 0 V; return the fade length.
 
-        The fade lasts ``n_samples``, or longer where the slew bound needs it: a linear fade
-        from ``v`` over ``N`` samples steps ``v / N`` per sample, so ``N >= |v| / dV_max``
-        keeps the slew clamp from stopping it short of zero (one sample more, so rounding never
-        makes the fade's step exceed the bound).
+        A fault's fade ignores the request and ramps the last output linearly to zero over
+        ``n_samples``, or longer where the slew bound needs it: a linear fade from ``v`` over
+        ``N`` samples steps ``v / N`` per sample, so ``N >= |v| / dV_max`` keeps the slew clamp
+        from stopping it short of zero (one sample more, so rounding never makes the fade's step
+        exceed the bound). A requested stop's (``smooth``) multiplies the request by a raised
+        cosine ``(1 + cos(pi k / N)) / 2`` over ``N = n_samples`` (its slope zero at both ends),
+        then 0; the slew clamp and the other bounds still act on the product. A fault during a
+        smooth fade starts a fault's fade from the outputs it reached.
         """
-        need = np.floor(np.max(np.abs(self.state[_V]) / self.params[_DVMAX], initial=0.0)) + 1
+        need = 1 if smooth else fade_length(self.state, self.params)
         self.state[_FADE_FROM] = self.state[_V]
         self.fade[0] = 0
-        self.fade[1] = max(int(n_samples), int(need), 1)
+        self.fade[1] = max(int(n_samples), need, 1)
+        self.fade[2] = FADE_COSINE if smooth else FADE_LINEAR
         return int(self.fade[1])
+
+    @property
+    def smooth_stop(self) -> bool:
+        """A requested stop's raised-cosine fade is running or done (not a fault's)."""
+        return bool(self.fade[1] > 0 and self.fade[2] == FADE_COSINE)
 
     @property
     def done(self) -> bool:

@@ -453,6 +453,8 @@ SCENE = Table(
                 "fs": Key("float", 48000.0, "Hz", "sample rate", 1000.0, 384000.0),
                 "block": Key("int", 32, "", "samples per block", 1, 8192),
                 "duration": Key("float", 2.0, "s", "run length", 0.0, 86400.0, open_lo=True),
+                "stop_fade": Key("float", 0.03, "s", "a requested stop (end of run, Ctrl-C) fades every output out under a raised cosine this long (a fault fades over one block)", 0.0, 10.0, open_lo=True),
+                "settle_max": Key("float", 0.5, "s", "after a requested stop's fade the trace runs on at 0 V until the model's tips have settled (slowest free oscillation down 60 dB), at most this long", 0.0, 60.0),
                 "priority": Key("int", 80, "", "with --realtime: the loop thread's SCHED_FIFO priority (0 = stay SCHED_OTHER; needs CAP_SYS_NICE or an rtprio limit, else the run goes on without it and says so)", 0, 99),
                 "cpu": Key("int", -1, "", "with --realtime: the CPU the loop thread runs on, every other thread of the run off it (-1 = any)", -1, 4095),
                 "spin": Key("float", 0.0, "us", "paced runs: sleep until this long before each block's deadline, then spin on the clock (a core busy that long per block; 0 = off)", 0.0, 1e5),

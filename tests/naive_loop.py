@@ -41,15 +41,18 @@ def limit_block(x, state, params, fade, counts):
     status = 0
     vmax, dvmax, heat, rth, inv_fs_tau, tamb, tmax, joule, mkind, mbound, malpha, mscale, mcmd = params
     n = x.shape[1]
+    hard = fade[1] > 0 and fade[2] == 0  # a fault's shutdown; fade[2] == 1: a requested stop's
     for c in range(x.shape[0]):
         v0 = prev = state[0, c]
         for i in range(n):
             v = x[c, i]
-            if fade[1] > 0:  # a shutdown ignores the request, NaN or not
-                k = fade[0] + i + 1
+            k = fade[0] + i + 1
+            if hard:  # a fault's shutdown ignores the request, NaN or not
                 v = state[2, c] * max(0.0, 1.0 - k / fade[1])
             elif not math.isfinite(v):
                 v, status = 0.0, status | 4
+            if fade[1] > 0 and not hard:  # the request under a raised cosine, then 0
+                v *= (1.0 + math.cos(math.pi * k / fade[1])) / 2.0 if k < fade[1] else 0.0
             if abs(v) > vmax[c]:
                 v, status = math.copysign(vmax[c], v), status | 1
                 counts[0, c] += 1
@@ -63,7 +66,7 @@ def limit_block(x, state, params, fade, counts):
         if kind == 1:  # piezo DC offset: |m| <= D
             m = state[3, c]
             new = m + a * (sum(row) / n - m)
-            if abs(new) > D and fade[1] == 0:
+            if abs(new) > D and not hard:
                 sign = 1.0 if new > 0 else -1.0
                 g = sign * m
                 ch = _lower(row, v0, dvmax[c], vmax[c], sign, 1, 1.0, g + (D - g) / a, None)
@@ -75,7 +78,7 @@ def limit_block(x, state, params, fade, counts):
             for r, sign in ((0, 1.0), (1, -1.0)):
                 g = state[3 + r, c]
                 new = g + a * (_measure([sign * v for v in row], kind, mscale[c], mcmd[c]) - g)
-                if new > D and fade[1] == 0:
+                if new > D and not hard:
                     ch = _lower(row, v0, dvmax[c], vmax[c], sign, kind, mscale[c], g + (D - g) / a, mcmd[c])
                     counts[2, c] += ch
                     status |= 2048 if ch else 0

@@ -510,10 +510,11 @@ def test_limiter_shutdown_kernel_is_the_limiters():
                       thermal_resistance=[1.0] * 3, thermal_tau=[10.0] * 3)
         lim.state[0] = rng.uniform(-150, 150, 3)
         twin = [a.copy() for a in lim.args[:3]]
-        n = lim.shutdown(64)
-        assert K.limiter_shutdown(*twin, 64) == n
-        for a, b in zip(lim.args[:3], twin):
-            np.testing.assert_array_equal(a, b)
+        for smooth in (False, True):
+            n = lim.shutdown(64, smooth)
+            assert K.limiter_shutdown(*twin, 64, smooth) == n
+            for a, b in zip(lim.args[:3], twin):
+                np.testing.assert_array_equal(a, b)
 
 
 def test_ctrl_c_fades_delivers_each_block_once_and_reraises():

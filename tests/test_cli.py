@@ -84,8 +84,13 @@ def test_run_json_summary_trace_and_plot(capsys, tmp_path):
     from rtctl.trace import TraceReader
 
     r = TraceReader(tmp_path / "trace")
-    assert r.n_blocks == math.ceil(0.5 * 48000 / 32) + 1  # run blocks + the closing fade block
-    assert np.all(r.signal("drive")[:, -1] == 0.0)  # the run ends at 0 V
+    # run blocks, the requested stop's 30 ms raised-cosine release, then 0 V while the tips settle
+    stop = s["stop"]
+    assert stop["by"] == "end" and stop["fade"] == "raised cosine" and stop["fade_s"] == 0.03
+    assert 0 < stop["settle_s"] <= 0.5
+    assert r.n_blocks == math.ceil(0.5 * 48000 / 32) + 45 + round(stop["settle_s"] * 48000 / 32)
+    drive = r.signal("drive")
+    assert np.all(drive[:, (750 + 45) * 32 - 1:] == 0.0) and np.any(drive[:, (750 + 44) * 32] != 0.0)
     rows = r.layout["meta"]["sensed_rows"]
     assert len(rows) == r.signal("sensed").shape[0]
     assert rows[:3] == ["lateral.0.seg0", "lateral.0.seg1", "lateral.1.seg0"]

@@ -106,7 +106,7 @@ def test_matches_naive_twin_on_a_photo(unit):
 
 def test_max_count_matches_the_naive_scan():
     img = load_image(HOPPER)
-    r = BeatRenderer(grid=(6, 8), hia=96, px_size=0.06e-3).prepare(img)
+    r = BeatRenderer(grid=(6, 8), hia=96, px_size=0.06e-3, normalize="image").prepare(img)
     h, w = r.shape
     assert r.max_count == (naive_max_window_count(r.labels, r.valid, h, w, h // 4, w // 4),
                            naive_max_window_count(r.edge_labels, r.edge_valid, h, w, h // 4, w // 4))
@@ -139,3 +139,61 @@ def test_bad_configurations():
     out = r.empty()
     r.update(32, 32, out)
     assert out[2, 1] == out[2, 3] and out[0, 1] == out[0, 3] - out[0, 2] / 2
+
+
+# --- normalisation: the physiological maximum (default) against the image's own -----------------
+
+PX = 0.5e-3  # an 8 x 8 px square is 16 mm^2: one valid blob (>= 12.6 mm^2)
+#: the unit (the whole 96 x 96 px HIA of a 2 x 2 grid) is 48 mm x 48 mm = 2304 mm^2; receptive
+#: fields of 12.6 mm^2 tiling it (density 1): floor(2304 / 12.6) = floor(182.86) = 182 blobs at most
+N_MAX = 182
+
+
+def blob_grid(n, size=(192, 192), at=(20, 20), spacing=12, cols=8):
+    """White image with ``n`` black 8 x 8 px squares on a grid from ``at`` (row, col)."""
+    img = np.full(size, 255, np.uint8)
+    for k in range(n):
+        r, c = at[0] + (k // cols) * spacing, at[1] + (k % cols) * spacing
+        img[r:r + 8, c:c + 8] = 0
+    return img
+
+
+def beat_at(img, x, y, **kw):
+    r = BeatRenderer(grid=(2, 2), hia=96, px_size=PX, **kw).prepare(img)
+    out = r.empty()
+    r.update(x, y, out)
+    return r, out[0, 2]
+
+
+@pytest.mark.parametrize("n", [1, 40])
+def test_the_physiological_maximum_gives_each_blob_count_its_own_beat(n):
+    img = blob_grid(n)  # every blob (rows 20-75, columns 20-111) inside the HIA centred at (66, 48)
+    r, fb = beat_at(img, 66, 48)
+    assert int(r.valid.sum()) == n and r.max_count[0] == N_MAX
+    assert fb == pytest.approx(0.3 + n / N_MAX * (40 - 0.3), rel=1e-12)  # Eq. (1) with f_bb = n / 182
+    r, fb = beat_at(img, 66, 48, normalize="image")
+    assert r.max_count[0] == n and fb == pytest.approx(40.0, rel=1e-12)  # the densest place: the band's top
+
+
+def test_a_texture_beats_alike_in_any_image_only_under_the_physiological_maximum():
+    one = blob_grid(1, size=(192, 400))
+    both = one.copy()
+    both[:, 200:] = blob_grid(40, size=(192, 200))  # forty more blobs, far from the first one's HIA
+    for normalize, same in (("field", True), ("image", False)):
+        _, fb1 = beat_at(one, 55, 55, normalize=normalize)
+        _, fb2 = beat_at(both, 55, 55, normalize=normalize)
+        assert bool(fb1 == pytest.approx(fb2, rel=1e-12)) is same, (normalize, fb1, fb2)
+
+
+def test_the_maximum_follows_the_unit_and_the_pixel_size():
+    img = blob_grid(1)
+    # the seed's display: 6 x 8 cells at 1.5 mm, 12 px per cell: 9 x 12 mm = 108 mm^2, 8 blobs
+    r = BeatRenderer(grid=(6, 8), hia=96).prepare(img)
+    assert r.max_count[0] == 8 == int(np.floor(9 * 12 / 12.6))
+    # units of 2 x 2 cells: 3 x 3 mm = 9 mm^2 hold no whole field; one blob is the most
+    assert BeatRenderer(grid=(6, 8), hia=96, unit=(2, 2)).prepare(img).max_count[0] == 1
+    assert BeatRenderer(grid=(2, 2), hia=96, px_size=PX, max_count=(5, 7)).prepare(img).max_count == (5, 7)
+    with pytest.raises(SceneError, match="no physiological maximum"):
+        BeatRenderer(min_blob_area=0.0)
+    with pytest.raises(SceneError, match="normalize"):
+        BeatRenderer(normalize="densest")

@@ -10,7 +10,7 @@ from rtctl.errors import SceneError
 from rtctl.render.cli import main
 from rtctl.render.factory import make_renderer
 from rtctl.render.image import load_image
-from rtctl.render.path import PathPlayer, from_csv, raster, through
+from rtctl.render.path import PathPlayer, at_speed, from_csv, parse_path, raster, through
 
 HOPPER = cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)
 
@@ -82,6 +82,82 @@ def test_cli_renders_a_mouse_path(tmp_path, capsys):
     f.write_text("t,x,y\n0,100,100\n0.5,400,500\n")
     assert main([HOPPER, "--method", "roi", "--path", str(f), "--rate", "200", "--out", str(tmp_path), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert d["path"] == {"updates": 101, "rate_hz": 200.0, "duration_s": 0.5}
+    assert d["path"] == {"spec": str(f), "updates": 101, "rate_hz": 200.0, "duration_s": 0.5,
+                         "start": [100.0, 100.0], "end": [400.0, 500.0]}
     frames = np.load(tmp_path / "params.npy")
     assert frames.shape == (101, 16, 5)
+
+
+def test_way_points_at_a_speed_take_their_length_over_the_speed():
+    p = at_speed([(0, 0), (30, 40), (30, 0)], speed=500.0, rate=1000.0)  # 50 px, then 40 px
+    assert p.t[-1] == pytest.approx(90 / 500.0) and len(p) == 181
+    steps = np.hypot(np.diff(p.x), np.diff(p.y))
+    corner = 100  # the sample at 0.1 s is the corner itself
+    np.testing.assert_allclose(np.delete(steps, [corner - 1, corner]), 0.5, rtol=1e-9)
+    assert (p.x[corner], p.y[corner]) == pytest.approx((30.0, 40.0))
+    with pytest.raises(SceneError, match="same point"):
+        at_speed([(1, 1), (1, 1)], 10.0)
+
+
+def test_parse_path_names_every_form(tmp_path):
+    r = parse_path("raster", 200, 100, speed=2000.0, step=33.0)
+    q = raster(200, 100, speed=2000.0, step=33.0)
+    np.testing.assert_array_equal(r.x, q.x) and np.testing.assert_array_equal(r.y, q.y)
+    p = parse_path(" 0,0 ; 30,40 ;30,0 ", 200, 100, speed=500.0)
+    np.testing.assert_array_equal(p.x, at_speed([(0, 0), (30, 40), (30, 0)], 500.0).x)
+    p = parse_path("0,0@0;30,40@0.05;30,0@0.1", 200, 100, rate=200.0)
+    np.testing.assert_array_equal(p.y, through([(0, 0), (30, 40), (30, 0)], [0, 0.05, 0.1], 200.0).y)
+    wp = tmp_path / "way.csv"
+    wp.write_text("# a square\nx,y\n0,0\n10,0\n10,10\n")
+    p = parse_path(str(wp), 200, 100, speed=1000.0)
+    assert p.t[-1] == pytest.approx(0.02) and (p.x[-1], p.y[-1]) == (10.0, 10.0)
+    for spec, words in (("rastr", "'rastr': no such file; give 'raster'"),
+                        ("0,0;1,1@0.5", "a time (X,Y@T) for every way-point or for none"),
+                        ("0,0;a,1", "way-point 2 'a,1' must be X,Y or X,Y@T"),
+                        ("5,5", "at least two way-points"),
+                        (str(tmp_path), "not a regular file")):
+        with pytest.raises(SceneError, match=words.replace("(", r"\(").replace(")", r"\)")):
+            parse_path(spec, 200, 100)
+
+
+@pytest.mark.parametrize("spec, n, end", [
+    ("raster", None, None),
+    ("48,48;463,48;463,551", None, (463.0, 551.0)),
+    ("48,48@0;463,551@0.25", 251, (463.0, 551.0)),
+], ids=["raster", "way-points-at-speed", "timed-way-points"])
+def test_cli_renders_raster_and_way_point_paths(tmp_path, capsys, spec, n, end):
+    from rtctl.cli import main as rtctl_main
+
+    code = rtctl_main(["render", HOPPER, "--method", "roi", "--path", spec, "--speed", "4000",
+                       "--out", str(tmp_path), "--json"])
+    assert code == 0
+    d = json.loads(capsys.readouterr().out)
+    path = {"raster": raster(512, 600, 4000.0, 1000.0, step=32.0),  # lines one HIA (32 px) apart
+            "timed-way-points": through([(48, 48), (463, 551)], [0.0, 0.25])}.get(
+        "raster" if spec == "raster" else "timed-way-points" if "@" in spec else "",
+        at_speed([(48, 48), (463, 48), (463, 551)], 4000.0))
+    assert d["path"]["updates"] == len(path) and d["path"]["spec"] == spec
+    if n is not None:
+        assert len(path) == n
+    if end is not None:  # the last update falls within one step (speed / rate) of the last way-point
+        assert np.hypot(*(np.array(d["path"]["end"]) - end)) <= 4000.0 / 1000.0
+    frames = np.load(tmp_path / "params.npy")
+    r = make_renderer("roi", grid=(4, 4), hia=32).prepare(load_image(HOPPER))
+    np.testing.assert_array_equal(frames, r.render_path(path.x, path.y))
+    code = rtctl_main(["render", HOPPER, "--path", "0,0;1,1@2"])
+    assert code == 2 and "a time (X,Y@T) for every way-point" in capsys.readouterr().err
+
+
+def test_cli_beat_normalisation_is_a_choice(capsys):
+    from rtctl.cli import main as rtctl_main
+
+    for norm, want in ((None, "field"), ("image", "image")):
+        code = rtctl_main(["render", HOPPER, "--method", "beat", "--json"] + (["--normalize", norm] if norm else []))
+        assert code == 0
+        d = json.loads(capsys.readouterr().out)
+        assert d["normalize"] == want
+    # the default display (6 x 8 at 1.5 mm): 9 x 12 mm over 12.6 mm^2
+    code = rtctl_main(["render", HOPPER, "--method", "beat", "--json"])
+    assert json.loads(capsys.readouterr().out)["max_count"][0] == 8
+    code = rtctl_main(["render", HOPPER, "--method", "roi", "--normalize", "image"])
+    assert code == 2 and "--normalize applies to --method beat only" in capsys.readouterr().err

@@ -16,14 +16,15 @@ def make(n=3, fs=48000.0, **kw):
     return Limiter(fs, **args)
 
 
-def test_kernel_matches_naive_twin_on_random_requests():
+@pytest.mark.parametrize("smooth", [False, True], ids=["fault-fade", "requested-stop"])
+def test_kernel_matches_naive_twin_on_random_requests(smooth):
     rng = np.random.default_rng(0)
     lim, ref = make(4, slew=2e6, current=1e-2), make(4, slew=2e6, current=1e-2)
     for k in range(20):
         x = rng.normal(0, 80, (4, 37))
         x[rng.random(x.shape) < 0.01] = np.nan
         if k == 15:
-            lim.shutdown(50), ref.shutdown(50)
+            lim.shutdown(50, smooth), ref.shutdown(50, smooth)
         y = x.copy()
         s1 = lim.process(x)
         s2 = naive_loop.limit_block(y, *ref.args)
@@ -168,3 +169,35 @@ def test_pin_commands_keep_the_voltage_bound_but_do_not_heat():
     assert lim.process(x) & LIMIT_VOLTAGE
     assert x.max() == pytest.approx(imax * R)
     assert lim.temperature[0] == pytest.approx(25.0, abs=1e-12)
+
+
+def test_a_requested_stop_releases_the_request_under_a_raised_cosine():
+    fs, n = 48000.0, 1440  # a 30 ms release
+    lim = make(1, fs=fs, slew=1e9, current=10.0)
+    t = np.arange(4 * n) / fs
+    tone = 90.0 * np.sin(2 * np.pi * 250.0 * t)
+    x = tone[:64].reshape(1, -1).copy()
+    lim.process(x)
+    assert lim.shutdown(n, smooth=True) == n and lim.smooth_stop
+    y = tone[64:64 + 2 * n].reshape(1, -1).copy()
+    for b in range(0, y.shape[1], 32):  # block by block, as the loop runs it
+        lim.process(y[:, b:b + 32])
+    k = np.arange(1, 2 * n + 1)
+    window = np.where(k < n, 0.5 * (1 + np.cos(np.pi * k / n)), 0.0)  # Hann's falling half
+    np.testing.assert_allclose(y[0], tone[64:64 + 2 * n] * window, atol=1e-12)
+    assert lim.done and np.all(y[0, n - 1:] == 0.0)
+    # the release is smooth: no step larger than the tone's own (a fault's fade: 90 V in one block)
+    assert np.abs(np.diff(y[0])).max() <= 2 * np.pi * 250.0 * 90.0 / fs
+    # a fault during a release cuts it to a linear fade from where the output is
+    lim2 = make(1, fs=fs, slew=1e9, current=10.0)
+    lim2.process(tone[:64].reshape(1, -1).copy())
+    lim2.shutdown(n, smooth=True)
+    z = tone[64:64 + 320].reshape(1, -1).copy()
+    lim2.process(z)
+    v = lim2.last[0]
+    lim2.shutdown(32)
+    assert not lim2.smooth_stop
+    w = np.full((1, 32), np.nan)
+    lim2.process(w)
+    np.testing.assert_allclose(w[0], v * (1 - np.arange(1, 33) / 32), atol=1e-12)
+    assert lim2.done

@@ -124,7 +124,8 @@ def test_a_square_wave_drive_of_half_duty_per_spring_passes_untouched():
     assert 0.25 < m[-1, 0, 0] < 0.45 and 0.25 < m[-1, 1, 0] < 0.45
 
 
-def test_kernel_matches_naive_twin_with_the_mean_bounds_engaged():
+@pytest.mark.parametrize("smooth", [False, True], ids=["fault-fade", "requested-stop"])
+def test_kernel_matches_naive_twin_with_the_mean_bounds_engaged(smooth):
     rng = np.random.default_rng(3)
     kw = dict(max_voltage=[100.0, 100.0, 2.0, 12.0], slew=[2e6, 3e4, 1e6, 1e9], current=[1e-2, 1e-2, 2.0, 1.0],
               capacitance=[1e-8, 1e-8, 0.0, 0.0], resistance=[0.0, 0.0, 1.56, 8.0], temperature=1e3,
@@ -135,7 +136,7 @@ def test_kernel_matches_naive_twin_with_the_mean_bounds_engaged():
     for k in range(40):
         x = rng.normal(0, 1, (4, 32)) * [[60], [60], [2.5], [10]] + [[40], [-30], [1.0], [0]]
         if k == 35:
-            lim.shutdown(50), ref.shutdown(50)
+            lim.shutdown(50, smooth), ref.shutdown(50, smooth)
         y = x.copy()
         s1 = lim.process(x)
         s2 = naive_loop.limit_block(y, *ref.args)

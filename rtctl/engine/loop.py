@@ -210,7 +210,7 @@ class Loop:
         finally:
             wall = (pace.now_ns(st) - st[pace.START]) * 1e-9 if st[pace.START] else 0.0
             try:
-                k = self._fade(st, k, times, lates, missed)
+                k = self._fade(st, k, times, lates, missed, requested=not faults, faults=faults)
             finally:
                 session.restore()
                 if self.drain is not None:
@@ -226,11 +226,23 @@ class Loop:
                           int(st[pace.OVERRUNS]), self.ring.dropped if self.ring is not None else 0,
                           session.summary())
 
-    def _fade(self, st, k, times, lates, missed) -> int:
-        """Whatever ended the run, fade every output to zero (one block, longer if the slew limit
-        needs it), paced like the run, recording the fade blocks; returns the blocks recorded."""
+    def _fade(self, st, k, times, lates, missed, requested: bool, faults=None) -> int:
+        """Whatever ended the run, fade every output to zero, paced like the run, recording the
+        fade blocks; returns the blocks recorded.
+
+        A fault fades linearly over one block (longer if the slew limit needs it). A requested
+        stop (the run's end, Ctrl-C) fades over ``rig.stop_fade`` samples (``timing.stop_fade``)
+        as a raised cosine, then runs on with 0 V for ``rig.settle_blocks`` while the tips
+        settle; a fault in its blocks cuts the fade to one block and ends the run when it is done.
+        """
         rig = self.rig
-        rig.limiter.shutdown(rig.block)
+        lim = rig.limiter
+        if requested:
+            rig.hold_control()
+            lim.shutdown(rig.stop_fade, smooth=True)
+        else:
+            lim.shutdown(rig.block)
+        tail = rig.settle_blocks if requested else 0  # blocks to run on once the fade is done
         while True:
             if self.paced:
                 while pace.wait(st, k, self.period_ns):
@@ -246,8 +258,15 @@ class Loop:
                 else:
                     end_block(st, k, self.period_ns, self.paced, times, lates, missed, status, *self.ring.args)
             k += 1
-            if rig.limiter.done:
-                return k
+            if status & safety.FAULTS and lim.smooth_stop:
+                lim.shutdown(rig.block)  # a fault during a requested stop: its own, quick fade
+                tail = 0
+                if faults is not None:
+                    faults.append(fault_message(rig, k, status, rig.block / rig.fs))
+            if lim.done:
+                if tail <= 0:
+                    return k
+                tail -= 1
 
     def _room(self) -> None:
         """Wait until the ring has a free slot (runs that are not real time only)."""

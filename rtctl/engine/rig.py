@@ -24,6 +24,8 @@ open-loop scene never touches ``rtctl.selfsense`` or ``cv2``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..errors import SceneError
@@ -236,6 +238,17 @@ class Rig:
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
 
+    def hold_control(self) -> None:
+        """A requested stop: every amplitude controller holds its command from now on, so
+        feedback does not answer the release (the falling amplitude it sees) by raising the
+        drive, and its final state is the run's. Called between blocks by the loop's thread."""
+        if not self.controllers:
+            return
+        from ..control._kernels import WAIT
+
+        for _, _, ctl in self.controllers:
+            ctl.state[WAIT] = np.inf  # a tone waiting for its estimate changes nothing
+
     def _start_controlled(self, i: int) -> bool:
         """The stimulus' start of bank tone ``i``: a controlled tone starts under control."""
         hit = self.controlled.get(i)
@@ -283,6 +296,13 @@ class Rig:
         )
         if self.device.commands_only is not None:  # pin commands: the firmware pulses the coils
             self.limiter.commands_only(self.device.commands_only * np.array([g.max_voltage for g in groups]))
+        from .settle import settle_time
+
+        # a requested stop (end of run, Ctrl-C): its raised-cosine fade, then blocks of 0 V while
+        # the tips settle (a fault fades over one block and ends the run)
+        self.stop_fade = max(1, int(round(scene.timing.stop_fade * self.fs)))
+        self.settle_s = settle_time(self.models, scene)
+        self.settle_blocks = int(math.ceil(self.settle_s * self.fs / self.block - 1e-9))
 
     def _stages(self) -> list:
         """The block function's stages, in order (see the module docstring)."""

@@ -4,9 +4,10 @@ Per block the engine calls the backend's ``read`` (sensed currents, one block la
 audio interface), the rig's ``@njit`` block step (synthesis and the final limiter over
 preallocated arrays) and the backend's ``write`` (for the ``sim`` backend this advances the
 simulated plant); the polled backends' loop is :mod:`rtctl.engine.loop` (its thread runs the
-blocks and nothing else: the trace and the progress bar are another thread's). On a fault or
-Ctrl-C every output fades to zero over one block before the run ends, and the trace keeps every
-finished block.
+blocks and nothing else: the trace and the progress bar are another thread's). On a fault every
+output fades to zero over one block before the run ends; at the run's end or on Ctrl-C under a
+raised cosine over ``timing.stop_fade``, and the trace runs on at 0 V until the model's tips
+have settled (:mod:`rtctl.engine.settle`). The trace keeps every finished block.
 """
 
 from __future__ import annotations
@@ -83,9 +84,14 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     ``rig``: a rig built for ``scene`` and run before (a campaign of runs on one rig): it and its
     device are put back to rest and run again, nothing rebuilt.
     """
+    from ..outpath import writable_dir
     from ..trace import TraceReader, TraceWriter
+    from ..validity import check as model_validity
     from .rig import build
 
+    validity = model_validity(scene)  # a model far outside its range is refused here
+    if out_dir is not None:  # before anything runs: a bad directory is one line, not a lost run
+        writable_dir(out_dir, "--out", subdirs=("trace",), files=RUN_FILES + ("calibration.json",))
     calibrated = None
     if rig is not None:
         rig.reset()
@@ -157,12 +163,18 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         "deadline_misses": misses,
         **timing,
         "faults": faults,
-        "warnings": [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
+        "warnings": validity + [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
         "build_s": build_s,
         # how the block ran: one composed function or stages from Python; cached kernels or not
         "block_function": rig.compose_note,
         "numba_cache": _numba.CACHE_NOTE or "stamped with the package",
         "interrupted": interrupted,
+        # how the outputs went to 0 V: a fault over one block, a requested stop under a raised
+        # cosine and then 0 V while the model's tips settle (rtctl.engine.settle)
+        "stop": {"by": "fault" if faults else ("interrupt" if interrupted else "end"),
+                 "fade": "linear" if faults else "raised cosine",
+                 "fade_s": (block if faults else rig.stop_fade) / fs,
+                 "settle_s": 0.0 if faults else rig.settle_blocks * period},
         # the scene's events, at the block they took effect in
         "events": [{"at": ev.at, "t_s": ev.block * period, "block": ev.block, "set": dict(ev.sets)}
                    for ev in rig.events if ev.block < run_blocks],

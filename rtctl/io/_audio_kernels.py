@@ -7,14 +7,12 @@ microsecond of dispatch, a numpy call per channel would cost that per channel.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba.core import types
 
 from .._codegen import kernel_call, load_generated, voidptr_at  # noqa: F401 - voidptr_at: generated code
 from .._numba import kernel
-from ..safety import _DVMAX, _FADE_FROM, _V, DEVICE_LOST, FAULTS, IO_XRUN, XRUN_BURST
+from ..safety import _FADE_FROM, _V, DEVICE_LOST, FADE_COSINE, FADE_LINEAR, FAULTS, IO_XRUN, XRUN_BURST, fade_length
 
 
 @kernel
@@ -148,25 +146,24 @@ def io_guard(ctl, sensed, out, xrun, state, params, fade, block):
                 st |= DEVICE_LOST
                 if ctl[GUARD] == 0:
                     ctl[GUARD] = GUARD_SILENT
-    if (st | xrun) & FAULTS and ctl[STOP_BEGUN] == 0:
+    # a fault fades over one block, and cuts short a requested stop's slower fade
+    if (st | xrun) & FAULTS and (ctl[STOP_BEGUN] == 0 or fade[2] == FADE_COSINE):
         ctl[STOP_BEGUN] = 1
-        limiter_shutdown(state, params, fade, block)
+        limiter_shutdown(state, params, fade, block, False)
     return st
 
 
 @kernel
-def limiter_shutdown(state, params, fade, n_samples):
+def limiter_shutdown(state, params, fade, n_samples, smooth):
     """:meth:`rtctl.safety.Limiter.shutdown` over the limiter's arrays, callable from the device
     thread without Python: fade from the last outputs to 0 V over ``n_samples`` (longer where
-    the slew bound needs it). Returns the fade length."""
-    need = 0.0
-    for c in range(state.shape[1]):
-        if params[_DVMAX, c] > 0.0:
-            need = max(need, abs(state[_V, c]) / params[_DVMAX, c])
+    the slew bound needs it), a raised cosine if ``smooth``. Returns the fade length."""
+    need = 1 if smooth else fade_length(state, params)
     for c in range(state.shape[1]):
         state[_FADE_FROM, c] = state[_V, c]
     fade[0] = 0
-    fade[1] = max(n_samples, int(math.floor(need)) + 1, 1)
+    fade[1] = max(n_samples, need, 1)
+    fade[2] = FADE_COSINE if smooth else FADE_LINEAR
     return fade[1]
 
 
@@ -226,7 +223,7 @@ def callback(inp, outp, frames, time_info, flags, user):
     try:
         if (ctl[STOP_REQ] != 0 or ctl[DONE] >= ctl[STOP_AT]) and ctl[STOP_BEGUN] == 0:
             ctl[STOP_BEGUN] = 1
-            limiter_shutdown({lim_state}, {lim_params}, {lim_fade}, {block})
+            limiter_shutdown({lim_state}, {lim_params}, {lim_fade}, {stop_fade}, True)
 {read}
 {steps}
         ctl[CLIPPED] += rows_to_frames({out}, {outputs}, scale[1], fo, {last})
@@ -302,7 +299,7 @@ class _Table:
 
 
 def build_callback(*, calls, snapshot, ctl, inputs, in_scale, sensed, outputs, out_scale, out, last,
-                   limiter, status, compute, n_in, n_out, block, fs, io_xrun):
+                   limiter, status, compute, n_in, n_out, block, fs, io_xrun, stop_fade=None):
     """A PortAudio stream callback compiled to C (a numba ``cfunc``) that runs the whole block:
     frames -> ``sensed``, the block step's kernels, ``out`` -> frames, the snapshot, counters.
 
@@ -317,6 +314,8 @@ def build_callback(*, calls, snapshot, ctl, inputs, in_scale, sensed, outputs, o
         Shared counters and flags (the field constants of this module).
     limiter : tuple
         The limiter's ``(state, params, fade)`` arrays.
+    stop_fade : int, optional
+        Samples of a requested stop's raised-cosine fade (default one block).
     status, compute : ndarray, shape (ring,)
         The snapshot ring's status (int64) and compute time (float64, us) per slot.
 
@@ -344,7 +343,8 @@ def build_callback(*, calls, snapshot, ctl, inputs, in_scale, sensed, outputs, o
     snap = call(*snapshot)[:-1] + ", slot)"
     read = f"        frames_to_rows(carray(inp, ({block}, {n_in}), np.float32), {name(inputs)}, scale[0], " \
            f"{name(sensed)})" if n_in else ""
-    fields = dict(n_out=n_out, block=block, io_xrun=io_xrun, lim_state=name(limiter[0]),
+    fields = dict(n_out=n_out, block=block, io_xrun=io_xrun, stop_fade=int(stop_fade or block),
+                  lim_state=name(limiter[0]),
                   lim_params=name(limiter[1]), lim_fade=name(limiter[2]), read=read, steps=steps,
                   sensed=name(sensed),
                   out=name(out), outputs=name(outputs), last=name(last), ring=status.shape[0], snapshot=snap,

@@ -291,7 +291,7 @@ class AudioBackend(Backend):
         st = self._count_flags(status) if status else 0
         if (ctl[K.STOP_REQ] or ctl[K.DONE] >= ctl[K.STOP_AT]) and not ctl[K.STOP_BEGUN]:
             ctl[K.STOP_BEGUN] = 1
-            K.limiter_shutdown(*self._lim, self.block)
+            K.limiter_shutdown(*self._lim, self._stop_fade, True)
         if self._n_in:
             K.frames_to_rows(indata, self._inputs, self._in_scale, self._sensed)
         st |= self._step()
@@ -355,8 +355,8 @@ class AudioBackend(Backend):
         last = np.zeros_like(self._last)
         K.rows_to_frames(np.zeros_like(self._out), self._outputs, self._out_scale, fout, last)
         K.fade_frames(last, self._outputs, self._out_scale, fout)
-        st, par, fade = np.zeros((3, 1)), np.ones((8, 1)), np.zeros(2, dtype=np.int64)
-        K.limiter_shutdown(st, par, fade, self.block)
+        st, par, fade = np.zeros((5, 1)), np.ones((13, 1)), np.zeros(3, dtype=np.int64)
+        K.limiter_shutdown(st, par, fade, self.block, True)
         ctl = np.zeros(K.N_CTL, dtype=np.int64)
         K.io_guard(ctl, np.zeros_like(self._sensed), np.zeros_like(self._out), 0, st, par, fade, self.block)
 
@@ -377,6 +377,7 @@ class AudioBackend(Backend):
         compile the C callback for it (unless ``RTCTL_AUDIO_CFUNC=0`` or it cannot be built)."""
         self._rig, self._step, self._snapshot = rig, rig.step, rig.snapshot
         self._lim = rig.limiter.args[:3]  # state, params, fade
+        self._stop_fade = int(getattr(rig, "stop_fade", self.block))  # a requested stop's fade, samples
         rig.snapshot(self.snaps, self.snaps.n - 1)  # compiles it now if nothing did (not in a callback)
         for a in (self.snaps.out, self.snaps.sensed, self.snaps.temperature, self.snaps.status,
                   self.snaps.compute_us, self.ctl):
@@ -392,7 +393,8 @@ class AudioBackend(Backend):
                 calls=calls, snapshot=snap, ctl=self.ctl, inputs=self._inputs, in_scale=self._in_scale,
                 sensed=self._sensed, outputs=self._outputs, out_scale=self._out_scale, out=self._out,
                 last=self._last, limiter=self._lim, status=self.snaps.status, compute=self.snaps.compute_us,
-                n_in=self._n_in, n_out=self._n_out, block=self.block, fs=self.fs, io_xrun=IO_XRUN)
+                n_in=self._n_in, n_out=self._n_out, block=self.block, fs=self.fs, io_xrun=IO_XRUN,
+                stop_fade=self._stop_fade)
             self._cfunc_note = f"compiled in {time.perf_counter() - t:.2f} s"
         except Exception as e:  # noqa: BLE001 - the Python callback does the same job
             self._cfunc_note = f"unavailable ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
@@ -414,6 +416,7 @@ class AudioBackend(Backend):
         status = 0
         k_read = 0
         end = None  # blocks to deliver once the fade is done (the device runs on, silent)
+        held = False  # the controllers hold their commands (a requested stop began)
         interrupted = False
         # A Python callback needs the GIL once per block: no cyclic-GC pause (can be
         # milliseconds) while running, and a holder of the GIL yields it within a quarter block.
@@ -443,8 +446,17 @@ class AudioBackend(Backend):
                         stop = on_block(k, slot)
                         if (stop or k_read >= n_blocks) and not ctl[K.STOP_REQ]:
                             ctl[K.STOP_REQ] = 1
+                    if not held and ctl[K.STOP_BEGUN] and rig.limiter.smooth_stop:
+                        # a requested stop began in the device thread: the controllers hold their
+                        # commands from here (a block or two into the release, as this thread
+                        # trails the device's), so feedback does not answer the release
+                        held = True
+                        getattr(rig, "hold_control", lambda: None)()
                     if end is None and ctl[K.STOP_BEGUN] and rig.limiter.done:
-                        end = int(ctl[K.DONE])  # the fade's last block is among these
+                        # the fade's last block is among these; after a requested stop's fade the
+                        # device runs on silent until the model's tips have settled
+                        end = int(ctl[K.DONE]) + (int(getattr(rig, "settle_blocks", 0))
+                                                  if rig.limiter.smooth_stop else 0)
                     if end is not None and k_read >= end:
                         break
                     why = self._lost(t_start)

@@ -15,6 +15,8 @@ the scene's own values, as they would on a real device whose exact values nobody
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .._numba import kernel
@@ -57,6 +59,7 @@ def _bimorph(models, g, gi, fs, block):
                          seed=models.scene.io.seed + 7919 * gi)
     plant = BimorphPlant(models.beam(g), Amplifier(g.amplifier.bandwidth), sense, models.finger(g),
                          n_modes=g.beam.modes)
+    _check_shunt(models.scene, g, float(np.max(plant.fe.Cp)), fs)
     loads = [plant.finger]
     for finger in [*_event_fingers(models, g).values(), *_fault_fingers(models, g)]:
         if finger not in loads:
@@ -68,6 +71,30 @@ def _bimorph(models, g, gi, fs, block):
     plants = [plant] + [BimorphPlant(models.beam(g), Amplifier(g.amplifier.bandwidth), sense, f,
                                      n_modes=g.beam.modes) for f in loads[1:]]
     return SwitchedSimGroup(plants, fs, g.grid[0] * g.grid[1], max_block=max(block, 1))
+
+
+def _check_shunt(scene, g, cp, fs):
+    """The simulated group's shunt bound (:data:`rtctl.plant.bimorph.SHUNT_RC_FS`) in the scene's
+    words: the keys that set it, their values, and what to set them to."""
+    from ..plant.bimorph import SHUNT_RC_FS
+
+    rc = g.sense.shunt * cp
+    if rc * fs <= SHUNT_RC_FS:
+        return
+    key = f"actuator.{g.name}.sense.shunt"
+    raise SceneError(
+        f"{scene.source}: {key} = {g.sense.shunt:g} ohm is too large for a segment capacitance of "
+        f"{cp * 1e9:.3g} nF (set by actuator.{g.name}.beam: length {g.beam.length:g} m, width "
+        f"{g.beam.width:g} m, its layers) at timing.fs = {fs:g} Hz: the current-sense shunt's time constant "
+        f"R_s Cp = {rc:.3g} s must stay below {SHUNT_RC_FS:g} / fs, or its voltage drop on the piezo (which "
+        f"the model leaves out) would matter; set {key} below {_down(SHUNT_RC_FS / (fs * cp)):g} ohm, or "
+        f"timing.fs below {_down(SHUNT_RC_FS / rc):g} Hz")
+
+
+def _down(x: float) -> float:
+    """``x`` rounded down to 3 significant digits: a bound quoted to the user that really holds."""
+    e = 10.0 ** (math.floor(math.log10(x)) - 2)
+    return math.floor(x / e) * e
 
 
 def _sma(models, g, gi, fs, block):

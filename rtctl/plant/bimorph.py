@@ -257,6 +257,11 @@ def realization(plant: BimorphPlant, fs: float, form: str = "auto", max_cond: fl
     return sysd, modal, code, a, reals
 
 
+#: Largest ``R_s Cp fs`` a simulated group accepts: the model neglects the shunt's drop on the
+#: piezo (a pole at ``1 / (2 pi R_s Cp)``), which holds while that pole is far above ``fs``.
+SHUNT_RC_FS = 0.01
+
+
 class SimGroup:
     """``n_channels`` identical simulated bimorph channels advanced block by block.
 
@@ -329,10 +334,10 @@ class SimGroup:
             raise ModelError("SimGroup sense must have the plant's shunt and AA filter (they are "
                              "part of the discretized plant); build the plant with it instead")
         rc = sense.shunt_ohm * float(np.max(plant.fe.Cp))
-        if rc * fs > 0.01:
+        if rc * fs > SHUNT_RC_FS:
             raise ModelError(f"shunt time constant R_s Cp = {rc:.3g} s is not << 1/fs "
                              f"({1 / fs:.3g} s): the shunt drop on the piezo would matter; use "
-                             f"a shunt below {0.01 / (fs * float(np.max(plant.fe.Cp))):.3g} ohm")
+                             f"a shunt below {SHUNT_RC_FS / (fs * float(np.max(plant.fe.Cp))):.3g} ohm")
         self.plant, self.fs, self.n_channels, self.sense = plant, fs, nc, sense
         n_seg = plant.n_seg
         self.n_seg = n_seg

@@ -9,9 +9,18 @@ Preprocessing (once per image):
 * Sobel gradient magnitude of the gray image -> binarize (Otsu) -> label the white edge blobs
   (valid when at least ``min_edge_area``, default 0: all);
 * summed-area tables of gray and gray^2 (variance of any rectangle in O(1));
-* the largest number of valid blobs (and of edge blobs) found in any HIA-unit window of the
-  image, which normalises the counts (sampled on a grid of a quarter unit; a window holding
-  more clips to 1).
+* the normalising counts. Valid blobs (``normalize="field"``, the default): the most valid
+  blobs that can stimulate the finger in one unit, its area over the 12.6 mm^2 receptive field,
+  ``n_max = floor(unit area / min_blob_area)``. The packing: receptive fields tile the skin under
+  the unit without gaps or overlap (density 1), one blob per field; this is the most blobs of
+  at least that area that fit in the unit's area at all (real blobs need gaps, so the count an
+  image reaches is lower). A unit holding more (blobs straddling its edge count) clips to 1.
+  With it, a texture gives the same beat frequency in any image. ``normalize="image"`` instead
+  takes the largest count found in any unit-sized window of this image (sampled on a grid of a
+  quarter unit): every image then reaches the top of the band at its densest place, one blob or
+  forty. Edge blobs have no size bound (``min_edge_area`` 0) and no physiological maximum: their
+  count is normalised by the image's largest in either mode (seed 004: "the number of maximum
+  valid edge blobs in the HIA").
 
 Per unit (the whole HIA by default, or blocks of cells) in each update (Eqs. 1-3)::
 
@@ -26,6 +35,8 @@ film between them vibrates at the carrier ``f_c`` under a beat envelope ``f_b`` 
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -35,10 +46,12 @@ from rtctl.render.hia import Renderer
 from rtctl.render.image import to_gray
 
 __all__ = ["BeatRenderer", "blob_labels", "edge_image", "beat_frequency", "carrier_frequency",
-           "carrier_amplitude", "MEISSNER_FIELD_M2"]
+           "carrier_amplitude", "MEISSNER_FIELD_M2", "NORMALIZE"]
 
 #: Mean receptive field of a Meissner corpuscle, m^2 (seed 004: 12.6 mm^2).
 MEISSNER_FIELD_M2 = 12.6e-6
+#: How valid-blob counts are normalised: by the physiological maximum per unit, or by the image's.
+NORMALIZE = ("field", "image")
 
 
 def beat_frequency(f_bb, alpha=1.0, f_l=0.3, f_h=40.0):
@@ -134,8 +147,12 @@ class BeatRenderer(Renderer):
         Cells per unit sharing one (f_b, f_c, A_c); default the whole HIA (seed 004). Must
         divide the grid; its column count must be even unless it spans all columns (pairs may
         not straddle units).
+    normalize : str
+        ``"field"`` (default): valid blobs over the physiological maximum, the unit's area over
+        ``min_blob_area`` (see module); ``"image"``: over the image's own densest unit window.
+        Edge blobs: over the image's densest window either way.
     max_count : (int, int), optional
-        Normalising counts (valid blobs, edge blobs); default the image's maxima (see module).
+        Normalising counts (valid blobs, edge blobs), overriding ``normalize``.
     sobel_scale : float
         Gradient scale of the edge image (see :func:`edge_image`).
 
@@ -144,12 +161,15 @@ class BeatRenderer(Renderer):
     >>> img = np.full((96, 96), 255, np.uint8)
     >>> img[20:40, 10:30] = 0; img[60:80, 60:80] = 0       # two 20 x 20 px black squares
     >>> r = BeatRenderer(grid=(2, 2), hia=96, px_size=0.25e-3).prepare(img)
-    >>> int(r.areas[1]), r.max_count                          # 400 px = 25 mm^2 each
-    (400, (2, 2))
+    >>> int(r.areas[1]), r.max_count        # 400 px = 25 mm^2 each; 576 mm^2 / 12.6 mm^2 = 45.7
+    (400, (45, 2))
     >>> out = r.empty(); r.update(48, 48, out)
     0
-    >>> out[0, 1:4]                                           # freq, beat, carrier of cell (0, 0)
-    array([380.,  40., 400.])
+    >>> out[0, 1:4].round(3)                # freq, beat, carrier of cell (0, 0): f_b = 0.3 + 2/45 39.7
+    array([398.968,   2.064, 400.   ])
+    >>> r = BeatRenderer(grid=(2, 2), hia=96, px_size=0.25e-3, normalize="image").prepare(img)
+    >>> r.update(48, 48, out), r.max_count, float(out[0, 2])  # the image's own densest window: 2
+    (0, (2, 2), 40.0)
     """
 
     method = "beat"
@@ -157,7 +177,8 @@ class BeatRenderer(Renderer):
 
     def __init__(self, grid=(6, 8), hia=96, px_size=None, pitch=1.5e-3, min_blob_area=MEISSNER_FIELD_M2,
                  min_edge_area=0.0, beat_band=(0.3, 40.0), carrier_band=(40.0, 400.0), alpha=1.0,
-                 amp_scale=1.0 / 1024.0, threshold=None, unit=None, max_count=None, sobel_scale=0.25):
+                 amp_scale=1.0 / 1024.0, threshold=None, unit=None, max_count=None, sobel_scale=0.25,
+                 normalize="field"):
         super().__init__(grid, hia)
         R, C = self.grid
         if px_size is None:
@@ -182,6 +203,12 @@ class BeatRenderer(Renderer):
         if uc % 2 and uc != C:
             raise SceneError(f"unit = {unit!r}: an odd number of columns would split a cell pair; "
                              "use an even column count or the full width")
+        if normalize not in NORMALIZE:
+            raise SceneError(f"normalize = {normalize!r}: use one of {', '.join(NORMALIZE)}")
+        if normalize == "field" and max_count is None and not min_blob_area > 0.0:
+            raise SceneError("min_blob_area = 0 m^2 leaves no physiological maximum of blobs per unit; "
+                             "use normalize='image' or give max_count")
+        self.normalize = normalize
         self.unit = (ur, uc)
         self.px_size = float(px_size)
         self.min_blob_area = float(min_blob_area)
@@ -212,13 +239,22 @@ class BeatRenderer(Renderer):
         if self._max_count_given is None:
             h, w = self.unit[0] * self.cell, self.unit[1] * self.cell
             sr, sc = max(1, h // 4), max(1, w // 4)
-            nb = _k.max_window_count(self.vlab, _k.stamp_array(self.valid.size), h, w, sr, sc)
+            if self.normalize == "field":
+                nb = self.field_max_count()
+            else:
+                nb = _k.max_window_count(self.vlab, _k.stamp_array(self.valid.size), h, w, sr, sc)
             ne = _k.max_window_count(self.edge_vlab, _k.stamp_array(self.edge_valid.size), h, w, sr, sc)
             self.max_count = (int(nb), int(ne))
         else:
             self.max_count = self._max_count_given
         self.params[6] = 1.0 / self.max_count[0] if self.max_count[0] > 0 else 0.0
         self.params[7] = 1.0 / self.max_count[1] if self.max_count[1] > 0 else 0.0
+
+    def field_max_count(self) -> int:
+        """The most valid blobs one unit can hold: its area on the display over ``min_blob_area``
+        (receptive fields tiling it, one blob each; see the module), at least 1."""
+        area = self.unit[0] * self.cell * self.unit[1] * self.cell * self.px_size ** 2
+        return max(1, int(math.floor(area / self.min_blob_area * (1.0 + 1e-12))))
 
     def _update(self, r0, c0, out):
         R, C = self.grid

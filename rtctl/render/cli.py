@@ -1,5 +1,5 @@
-"""``rtctl render IMAGE``: per-pin parameters at one HIA position (or along a mouse path) and the
-intermediate images.
+"""``rtctl render IMAGE``: per-pin parameters at one HIA position (or along a path: a raster scan,
+way-points or a mouse recording) and the intermediate images.
 
 ``main(argv) -> int`` raises :class:`rtctl.errors.RtctlError` subclasses for bad input (the
 ``rtctl`` wrapper prints them as one line and exits 2); run as ``python -m rtctl.render.cli``
@@ -42,7 +42,15 @@ def parser() -> argparse.ArgumentParser:
                    help="HIA centre in pixels, x right, y down (default: image centre)")
     p.add_argument("--mm-per-px", type=float, metavar="S",
                    help="pixel size on the display, mm (beat; default pitch 1.5 mm / px per pin)")
-    p.add_argument("--path", metavar="CSV", help="mouse path t,x,y (s, px, px): render along it instead of --at")
+    p.add_argument("--normalize", choices=("field", "image"),
+                   help="beat: valid-blob count over the physiological maximum, the HIA area over the 12.6 mm^2 "
+                        "receptive field (field, default), or over the image's densest HIA window (image)")
+    p.add_argument("--path", metavar="PATH",
+                   help="render along a path instead of --at: 'raster' (a serpentine scan at --speed, lines one HIA "
+                        "apart), way-points 'X,Y;X,Y;...' (px, at --speed) or 'X,Y@T;X,Y@T;...' (T in s), or a CSV "
+                        "file (a mouse recording t,x,y; or way-points under a header x,y, at --speed)")
+    p.add_argument("--speed", type=float, default=200.0, metavar="PX/S",
+                   help="HIA speed along a raster or untimed way-points (default 200)")
     p.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="render rate along --path (default 1000)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--out", metavar="DIR", help="write the intermediate images (and params.npy for --path) here")
@@ -56,12 +64,20 @@ def main(argv=None) -> int:
     from rtctl.render.image import load_image
 
     image = load_image(args.image)
+    if args.out:
+        from rtctl.outpath import writable_dir
+
+        writable_dir(args.out, "--out")
     grid, hia = _DEFAULTS[args.method]
     kw = {"grid": args.grid or grid, "hia": args.hia if args.hia is not None else hia}
     if args.mm_per_px is not None:
         if args.method != "beat":
             raise SceneError(f"--mm-per-px applies to --method beat only (got --method {args.method})")
         kw["px_size"] = args.mm_per_px * 1e-3
+    if args.normalize is not None:
+        if args.method != "beat":
+            raise SceneError(f"--normalize applies to --method beat only (got --method {args.method})")
+        kw["normalize"] = args.normalize
     r = make_renderer(args.method, **kw).prepare(image)
     H, W = r.image_shape
     x, y = args.at if args.at is not None else ((W - 1) / 2.0, (H - 1) / 2.0)
@@ -70,16 +86,18 @@ def main(argv=None) -> int:
     res = {"image": os.fspath(args.image), "method": r.method, "grid": list(r.grid), "hia_px": r.hia,
            "cell_px": r.cell, "image_px": [W, H], "at": [x, y], "status": status}
     if args.method == "beat":
-        res.update(mm_per_px=r.px_size * 1e3, max_count=list(r.max_count),
+        res.update(mm_per_px=r.px_size * 1e3, normalize=r.normalize, max_count=list(r.max_count),
                    valid_blobs=int(r.valid.sum()), blobs=int(r.valid.size - 1))
     res["pins"] = r.pins(out)
     frames = None
     if args.path:
-        from rtctl.render.path import from_csv
+        from rtctl.render.path import parse_path
 
-        path = from_csv(args.path, args.rate)
+        path = parse_path(args.path, W, H, speed=args.speed, rate=args.rate, step=float(r.shape[0]))
         frames = r.render_path(path.x, path.y)
-        res["path"] = {"updates": len(path), "rate_hz": path.rate, "duration_s": float(path.t[-1] - path.t[0])}
+        res["path"] = {"spec": args.path, "updates": len(path), "rate_hz": path.rate,
+                       "duration_s": float(path.t[-1] - path.t[0]),
+                       "start": [float(path.x[0]), float(path.y[0])], "end": [float(path.x[-1]), float(path.y[-1])]}
     if args.out:
         res["files"] = _write(args.out, r, image, x, y, out, frames)
     if args.json:

@@ -8,6 +8,7 @@ Everything else raises :class:`ImageError` naming the file, what is wrong and ho
 from __future__ import annotations
 
 import os
+import stat
 
 import cv2
 import numpy as np
@@ -23,6 +24,10 @@ MAX_SIDE = 16384
 #: Largest image, pixels: 64 Mpx is 64 MB per 8-bit plane and ~1.5 GB for all the maps a beat
 #: renderer keeps (labels, summed-area tables); larger images should be downscaled first.
 MAX_PIXELS = 1 << 26
+
+#: What a path that is not a regular file is, in the words of ``ls -l``'s type letters.
+_KINDS = {stat.S_IFIFO: "a FIFO (named pipe)", stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device",
+          stat.S_IFSOCK: "a socket"}
 
 
 class ImageError(RtctlError, ValueError):
@@ -58,6 +63,10 @@ def load_image(path) -> np.ndarray:
         raise ImageError(f"{p}: no such file; give the path of an image file")
     if os.path.isdir(p):
         raise ImageError(f"{p}: is a directory, not an image file")
+    mode = os.stat(p).st_mode
+    if not stat.S_ISREG(mode):  # a FIFO or a device would block a read or report 0 bytes
+        raise ImageError(f"{p}: is {_KINDS.get(stat.S_IFMT(mode), 'not a regular file')}, not an image file; "
+                         "give a regular image file")
     size = os.path.getsize(p)
     if size == 0:
         raise ImageError(f"{p}: file is empty (0 bytes); give an image file")

@@ -2,7 +2,8 @@
 
 A :class:`Path` holds HIA centres ``x, y`` (px, x right, y down) at times ``t = t0 + k / rate``.
 Build one from a raster scan (:func:`raster`), from way-points with times (:func:`through`) or
-from a recorded mouse CSV (:func:`from_csv`). :class:`PathPlayer` turns it into parameter
+at a constant speed (:func:`at_speed`), from a recorded mouse CSV (:func:`from_csv`), or from the
+one-word form ``rtctl render --path`` takes (:func:`parse_path`). :class:`PathPlayer` turns it into parameter
 changes for the fixed-rate loop: before block ``k`` (starting at ``k block / fs``) the loop asks
 for the render update in force at that time; when it is new, the renderer fills the pending
 per-pin parameter array, which the oscillators ramp across the next block.
@@ -11,13 +12,14 @@ per-pin parameter array, which the oscillators ramp across the next block.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from rtctl.errors import SceneError
 
-__all__ = ["Path", "raster", "through", "from_csv", "PathPlayer"]
+__all__ = ["Path", "raster", "through", "at_speed", "from_csv", "parse_path", "PathPlayer"]
 
 
 @dataclass(frozen=True)
@@ -81,6 +83,35 @@ def through(points, times, rate=1000.0) -> Path:
     return Path(t, np.interp(t, tt, pts[:, 0]), np.interp(t, tt, pts[:, 1]), rate)
 
 
+def _speed(speed, what="path speed"):
+    if not (speed > 0.0 and math.isfinite(speed)):
+        raise SceneError(f"{what} = {speed!r} px/s must be > 0")
+    return float(speed)
+
+
+def at_speed(points, speed, rate=1000.0) -> Path:
+    """Piecewise-linear path through way-points at a constant ``speed`` (px/s), from t = 0.
+
+    Examples
+    --------
+    >>> p = at_speed([(0, 0), (3, 4), (3, 0)], speed=1000.0, rate=1000.0)   # 5 px, then 4 px
+    >>> float(p.t[-1]), p.x[:6].round(12).tolist(), p.y[5:].round(12).tolist()
+    (0.009, [0.0, 0.6, 1.2, 1.8, 2.4, 3.0], [4.0, 3.0, 2.0, 1.0, 0.0])
+    """
+    speed = _speed(speed)
+    pts = np.asarray(points, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] < 2:
+        raise SceneError(f"way-points {pts.shape} must be (m, 2) with m >= 2")
+    if not np.isfinite(pts).all():
+        raise SceneError("way-points must be finite")
+    seg = np.hypot(np.diff(pts[:, 0]), np.diff(pts[:, 1]))
+    keep = np.concatenate([[True], seg > 0.0])  # a repeated point adds no time
+    pts, s = pts[keep], np.concatenate([[0.0], np.cumsum(seg[seg > 0.0])])
+    if pts.shape[0] < 2:
+        raise SceneError("way-points must not all be the same point")
+    return through(pts, s / speed, rate)
+
+
 def raster(width, height, speed, rate=1000.0, step=33.0) -> Path:
     """Serpentine raster scan of a ``width x height`` px image at constant ``speed``.
 
@@ -106,8 +137,7 @@ def raster(width, height, speed, rate=1000.0, step=33.0) -> Path:
     (232, 16.5, 49.5)
     """
     rate = _rate(rate)
-    if not (speed > 0.0 and math.isfinite(speed)):
-        raise SceneError(f"raster speed = {speed!r} px/s must be > 0")
+    _speed(speed, "raster speed")
     if not step > 0.0:
         raise SceneError(f"raster step = {step!r} px must be > 0")
     ys = np.arange(step / 2.0, max(height, step / 2.0 + 1e-9), step)
@@ -126,11 +156,13 @@ def raster(width, height, speed, rate=1000.0, step=33.0) -> Path:
     return Path(t, np.interp(d, s, vx), np.interp(d, s, vy), rate)
 
 
-def from_csv(file, rate=1000.0) -> Path:
+def from_csv(file, rate=1000.0, speed=None) -> Path:
     """A recorded mouse path: CSV with columns ``t, x, y`` (s, px, px), resampled at ``rate``.
 
     A first line of column names is allowed (``t``/``time``, ``x``, ``y`` in any order); rows
-    with a time not after the previous row's (duplicate mouse events) are dropped.
+    with a time not after the previous row's (duplicate mouse events) are dropped. With
+    ``speed`` (px/s), a file whose header names only ``x`` and ``y`` holds way-points, travelled
+    at that speed (:func:`at_speed`).
     """
     try:
         with open(file, encoding="utf-8") as fh:
@@ -146,6 +178,12 @@ def from_csv(file, rate=1000.0) -> Path:
     except ValueError:
         names = {"t": "t", "time": "t", "t_s": "t", "x": "x", "y": "y"}
         idx = {names.get(h): k for k, h in enumerate(head) if h in names}
+        if set(idx) == {"x", "y"} and speed is not None:
+            try:
+                rows = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]])
+                return at_speed(rows[:, [idx["x"], idx["y"]]], speed, rate)
+            except (ValueError, IndexError):
+                raise SceneError(f"{file}: way-point rows must be numbers x,y") from None
         if set(idx) != {"t", "x", "y"}:
             raise SceneError(f"{file}: header {lines[0]!r} must name columns t, x and y") from None
         cols = (idx["t"], idx["x"], idx["y"])
@@ -160,6 +198,68 @@ def from_csv(file, rate=1000.0) -> Path:
     if data.shape[0] < 2:
         raise SceneError(f"{file}: a mouse path needs at least two rows at different times")
     return through(data[:, 1:], data[:, 0], rate)
+
+
+def parse_path(spec: str, width: int, height: int, *, speed: float = 200.0, rate: float = 1000.0,
+               step: float = 33.0) -> Path:
+    """The HIA path ``spec`` names, over a ``width x height`` px image.
+
+    ``spec`` is one of:
+
+    * ``raster``: a serpentine scan of the image at ``speed`` px/s, lines ``step`` px apart
+      (:func:`raster`);
+    * way-points ``X,Y;X,Y;...`` (px, at least two) travelled at ``speed`` (:func:`at_speed`), or
+      ``X,Y@T;X,Y@T;...`` with their times in s (:func:`through`; every point timed, or none);
+    * a CSV file: ``t,x,y`` rows (a mouse recording, :func:`from_csv`), or way-points under a
+      header ``x,y`` (no time column) travelled at ``speed``.
+
+    Examples
+    --------
+    >>> len(parse_path("raster", 100, 66, speed=1000.0))
+    232
+    >>> parse_path("0,10;4,10", 100, 66, speed=1000.0).x.tolist()
+    [0.0, 1.0, 2.0, 3.0, 4.0]
+    >>> parse_path("0,10@0;0,14@0.002", 100, 66).y.tolist()
+    [10.0, 12.0, 14.0]
+    """
+    text = spec.strip()
+    if text.lower() == "raster":
+        return raster(width, height, speed, rate, step)
+    if ";" in text or _is_point(text):
+        return _inline(text, speed, rate)
+    if not os.path.isfile(text):
+        what = "no such file" if not os.path.exists(text) else "not a regular file"
+        raise SceneError(f"--path {text!r}: {what}; give 'raster', way-points X,Y;X,Y (travelled at --speed) or "
+                         "X,Y@T;X,Y@T (times in s), or a CSV file (t,x,y rows, or x,y way-points)")
+    return from_csv(text, rate, speed=speed)
+
+
+def _is_point(text: str) -> bool:
+    """``text`` looks like one way-point (``X,Y`` or ``X,Y@T``), not a file name."""
+    head = text.split("@")[0].split(",")
+    try:
+        return len(head) == 2 and all(math.isfinite(float(v)) for v in head)
+    except ValueError:
+        return False
+
+
+def _inline(text: str, speed, rate) -> Path:
+    pts, times = [], []
+    for k, item in enumerate(p for p in text.split(";") if p.strip()):
+        xy, _, t = item.partition("@")
+        try:
+            x, y = (float(v) for v in xy.split(","))
+            times.append(float(t) if t.strip() else None)
+        except ValueError:
+            raise SceneError(f"--path way-point {k + 1} {item.strip()!r} must be X,Y or X,Y@T (px, px, s)") from None
+        pts.append((x, y))
+    timed = [t is not None for t in times]
+    if any(timed) and not all(timed):
+        raise SceneError("--path: give a time (X,Y@T) for every way-point or for none (then they are "
+                         "travelled at --speed)")
+    if len(pts) < 2:
+        raise SceneError("--path needs at least two way-points (X,Y;X,Y), 'raster' or a CSV file")
+    return through(pts, times, rate) if all(timed) else at_speed(pts, speed, rate)
 
 
 class PathPlayer:
