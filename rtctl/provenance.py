@@ -65,4 +65,6 @@ def provenance() -> dict:
 
 def differences(a: dict, b: dict) -> list[str]:
     """The :data:`BITWISE_KEYS` on which two provenances differ, as ``key: a -> b``."""
-    return [f"{k}: {a.get(k)} -> {b.get(k)}" for k in BITWISE_KEYS if a.get(k) != b.get(k)]
+    def short(v):
+        return v[:12] if isinstance(v, str) and len(v) == 64 else v
+    return [f"{k}: {short(a.get(k))} -> {short(b.get(k))}" for k in BITWISE_KEYS if a.get(k) != b.get(k)]
