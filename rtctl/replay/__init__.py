@@ -21,11 +21,13 @@ import copy
 from ..trace import TraceError
 
 
-def scene_of(reader, overrides=(), backend: str | None = None, model_only: bool = False, latency: bool = False):
+def scene_of(reader, overrides=(), backend: str | None = None, model_only: bool = False, latency: bool = False,
+             quiet: bool = False):
     """The scene a trace was recorded with, as a :class:`rtctl.scene.Scene`, with ``overrides``
     (``--set`` items) on top; ``backend`` replaces ``io.backend``; ``model_only`` sets every
     ``io.mismatch`` factor to 1 (the scene's model, not a simulated device's secret);
-    ``latency`` fixes ``io.latency_blocks`` at the recorded backend's latency."""
+    ``latency`` fixes ``io.latency_blocks`` at the recorded backend's latency; ``quiet`` sets
+    every actuator's ``sense.noise`` to 0 (the model's currents without a sensor's noise)."""
     from .. import scene as scenes
 
     meta = reader.meta
@@ -41,6 +43,9 @@ def scene_of(reader, overrides=(), backend: str | None = None, model_only: bool 
         io.pop("mismatch", None)
     if latency and meta.get("latency_blocks"):
         io["latency_blocks"] = int(meta["latency_blocks"])
+    if quiet:
+        for act in data.get("actuator", []):
+            act.setdefault("sense", {})["noise"] = 0.0
     origin = f"{reader.path} (recorded scene {meta.get('scene_name', '?')})"
     for item in overrides:
         scenes.apply_override(data, item)

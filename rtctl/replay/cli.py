@@ -23,6 +23,8 @@ def parser() -> argparse.ArgumentParser:
                    "(plant, observer) go (default: resim keeps nothing; plant and observer TRACE/../replay-MODE)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="change the recorded scene (e.g. another observer setting for --mode observer)")
+    p.add_argument("--skip", type=float, default=0.0, metavar="S",
+                   help="plant: leave the first S seconds out of the comparison (the plant still runs through them)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     return p
 
@@ -40,7 +42,7 @@ def main(argv=None) -> int:
     elif args.mode == "plant":
         from .plant import replay_plant
 
-        rep = replay_plant(reader, _out(reader, args), args.overrides)
+        rep = replay_plant(reader, _out(reader, args), args.overrides, args.skip)
     else:
         from .observer import replay_observer
 

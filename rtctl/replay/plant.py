@@ -8,6 +8,12 @@ sensed currents are compared with the recorded ones: the recorded currents answe
 ``k`` sit in record ``k + L`` (``L``: the backend's latency in blocks; the lag that fits best
 of 0 to :data:`MAX_LAG` is used and named, beside the recorded ``latency_blocks``).
 
+The model's currents carry no sensor noise (``sense.noise`` = 0), so the residual's floor is the
+recorded device's own noise over its signal (about 1 % on the demo scene's weakest rows, 0.2 %
+over all). ``--skip S`` leaves the first seconds out of the comparison (the plant still runs
+through them): a device that started listening a few blocks into the run (an emulator that
+connected late) is not at rest where the model is.
+
 Per sensed row and per window of :data:`WINDOW_S`: the residual ``rms(sim - rec) / rms(rec)`` in
 %, and the phase of the simulated against the recorded current (the angle of the sum of their
 analytic signals' product, degrees; positive: the model leads). Over the whole run: the same
@@ -37,7 +43,7 @@ def simulate(reader, overrides=()):
     (row ``k``: the currents of drive block ``k``) and the true tip, µm, ``(n, channels, block)``."""
     from ..engine.rig import build
 
-    scene = scene_of(reader, overrides, backend="sim", model_only=True)
+    scene = scene_of(reader, overrides, backend="sim", model_only=True, quiet=True)
     rig = build(scene)
     drive = reader.records["drive"]
     if rig.fs != reader.fs or rig.block != reader.block or drive.shape[1] != rig.n_channels:
@@ -105,7 +111,7 @@ def residuals(rec, sim, fs, block, names):
             "window_s": w / fs, "t_s": t, "window_residual_pct": res_w, "window_phase_deg": ph_w}
 
 
-def replay_plant(reader, out: Path, overrides=()) -> dict:
+def replay_plant(reader, out: Path, overrides=(), skip_s: float = 0.0) -> dict:
     if "sensed" not in reader.dtype.names or reader.dtype["sensed"].shape[0] == 0:
         raise TraceError(f"{reader.path}: the trace has no sensed currents to compare the plant with")
     if reader.n_blocks < 2:
@@ -116,14 +122,20 @@ def replay_plant(reader, out: Path, overrides=()) -> dict:
         raise TraceError(f"{reader.path}: the trace has {rec.shape[1]} sensed rows, the scene's plant {sim.shape[1]}")
     recorded_lag = int(reader.meta.get("latency_blocks") or 1)
     lag = _best_lag(rec, sim, recorded_lag)
+    k0 = min(int(round(skip_s * reader.fs / reader.block)), len(rec) - lag - 1)
+    if skip_s < 0 or k0 < 0:
+        raise TraceError(f"--skip {skip_s:g}: must be >= 0 and shorter than the trace")
     n = len(rec) - lag
-    res = residuals(rec[lag:], sim[:n], reader.fs, reader.block, names)
-    rep = {"mode": "plant", "blocks": reader.n_blocks, "latency_blocks": lag, "recorded_latency_blocks": recorded_lag,
+    res = residuals(rec[lag + k0:], sim[k0:n], reader.fs, reader.block, names)
+    res["t_s"] = res["t_s"] + k0 * reader.block / reader.fs
+    rep = {"mode": "plant", "blocks": n - k0, "skip_s": k0 * reader.block / reader.fs,
+           "latency_blocks": lag, "recorded_latency_blocks": recorded_lag,
            **{k: v for k, v in res.items() if not k.startswith("window") and k != "t_s"}, "window_s": res["window_s"]}
     if "tip_um" in reader.dtype.names:  # a simulated recording's truth: the tip, same block
         rt = np.asarray(reader.records["tip_um"], dtype=float)
         den = np.nansum(rt ** 2)
-        rep["tip_residual_pct"] = float(100 * np.sqrt(np.nansum((tip - rt) ** 2) / den)) if den > 0 else None
+        rep["tip_residual_pct"] = (float(100 * np.sqrt(np.nansum((tip[k0:] - rt[k0:]) ** 2) / np.nansum(rt[k0:] ** 2)))
+                                   if den > 0 else None)
     worst = max((r for r in res["rows"] if r["residual_pct"] is not None), key=lambda r: r["residual_pct"],
                 default=None)
     rep["line"] = _line(rep, worst)
