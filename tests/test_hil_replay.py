@@ -1,10 +1,11 @@
 """A run recorded on the audio backend against ``rtctl emulate audio`` (a private ``jackd -d
 dummy``), replayed with ``rtctl replay --mode plant``: the recorded drive through the scene's
 simulated plant must give back the recorded currents within 1 % rms over all rows (the emulator
-is the same plant; what remains is its sensor noise, which the model's currents do not carry), and with ``io.mismatch.eps33T = 1.1`` on the emulator alone (a device whose piezo
-permittivity is 10 % above the model's) the replay must say the device's currents are about
-1.1 times the model's: the segment currents are dominated by the clamped capacitance's
-``C dV/dt``, and C is proportional to eps33T (docs/replay.md).
+is the same plant; what remains is its sensor noise, which the model's currents do not carry),
+and with ``io.mismatch.eps33T = 1.1`` on the emulator alone (a device whose piezo permittivity
+is 10 % above the model's) the replay must say the device's currents are about 1.1 times the
+model's: the segment currents are dominated by the clamped capacitance's ``C dV/dt``, and C is
+proportional to eps33T (docs/replay.md).
 
 Skips cleanly without jackd or the JACK and PortAudio Python bindings (tests/optional.py)."""
 
