@@ -71,6 +71,10 @@ def format_info(d: dict) -> str:
     if d["scene"]:
         lines.append(f"  scene {d['scene']}")
     for k, v in d["made_by"].items():
+        if k == "rtctl" and isinstance(v, dict):
+            v = (f"{v.get('version')} (source {str(v.get('package_sha256'))[:12]}, git {v.get('git')}), Python "
+                 f"{v.get('python')}, numpy {v.get('numpy')}, scipy {v.get('scipy')}, numba {v.get('numba')}, "
+                 f"{v.get('machine')} {v.get('cpu')}")
         lines.append(f"  {k}: {json.dumps(v) if not isinstance(v, str) else v}")
     if d["status_seen"]:
         lines.append("  status seen: " + "; ".join(d["status_seen"]))

@@ -184,3 +184,24 @@ def test_exports_read_back_with_numpy_csv_and_scipy(tmp_path):
     np.testing.assert_array_equal(frames[:, 3], np.clip(drive[0] / 100.0, -1, 1).astype(np.float32))
     np.testing.assert_array_equal(frames[:, 1], np.clip(drive[1] / 100.0, -1, 1).astype(np.float32))
     assert not frames[:, [0, 2]].any()
+
+
+@pytest.mark.parametrize("argv", [["trace", "info"], ["trace", "export"], ["replay"]])
+def test_a_missing_trace_is_one_line(tmp_path, capsys, argv):
+    from rtctl.cli import main
+
+    assert main([*argv, str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no such trace" in err and "Traceback" not in err
+
+
+def test_info_reads_a_run_directory_and_says_what_made_it(tmp_path, capsys):
+    from rtctl.cli import main
+
+    w = TraceWriter(tmp_path / "trace", {"drive": ("V", 1)}, fs=100.0, block=2, channels=["a"],
+                    meta={"scene_name": "x", "seed": 7, "backend": "sim", "rtctl": {"version": "9"}})
+    w.next()
+    w.close()
+    assert main(["trace", "info", str(tmp_path), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["blocks"] == 1 and d["closed"] and d["made_by"]["seed"] == 7 and d["format"] == "rtctl-trace-2"
