@@ -146,3 +146,28 @@ def test_observer_replay_needs_an_observer(recorded, capsys):
     code = main(["replay", str(recorded), "--mode", "observer"])
     err = capsys.readouterr().err
     assert code == 2 and "--set control.observe=true" in err and err.count("\n") == 1
+
+
+def _ulp_then_growth(recs):
+    x = recs["drive"][50, 4, 3]
+    recs["drive"][50, 4, 3] = np.nextafter(x, np.float32(np.inf), dtype=np.float32)  # 1 ulp first
+    recs["drive"][120, 4, :] *= 1.02  # then more, as a closed loop carries a difference on
+
+
+def test_a_last_bit_start_that_grows_is_last_bit_with_the_same_code(recorded, tmp_path, capsys):
+    t = rewritten(recorded / "trace", tmp_path / "trace", _ulp_then_growth)
+    code, rep, _ = replay(capsys, t)
+    assert code == 0 and rep["verdict"] == "last-bit", rep["line"]
+    assert rep["first"]["block"] == 50 and rep["first"]["ulps"] == 1
+    assert rep["largest"]["block"] == 120 and rep["largest"]["signal"] == "drive"
+    assert "grow to" in rep["line"] and "block 120" in rep["line"]
+
+
+def test_the_same_difference_under_other_code_is_a_failure(recorded, tmp_path, capsys):
+    t = rewritten(recorded / "trace", tmp_path / "trace", _ulp_then_growth)
+    layout = json.loads((t / "trace.json").read_text())
+    layout["meta"]["rtctl"]["package_sha256"] = "0" * 64  # recorded by other code
+    (t / "trace.json").write_text(json.dumps(layout))
+    code, rep, _ = replay(capsys, t)
+    assert code == 1 and rep["verdict"] == "differs" and not rep["provenance_match"], rep["line"]
+    assert "package_sha256: 000000000000 ->" in rep["line"]
