@@ -96,7 +96,7 @@ def _parser() -> argparse.ArgumentParser:
           "(SCENE --vary KEY=SPEC ...)", "rtctl.cli:_sweep_main")
     _tool(sub, "replay", "replay a trace: re-run and compare bit by bit (resim), the recorded drive into the "
           "simulated plant (plant), or through the observer offline (observer) (TRACE [--mode ...])",
-          "rtctl.replay.cli:main")
+          "rtctl.engine.replay.cli:main")
     b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`, "
                        "`bench control`, `bench realtime`",
                        description="benchmarks (the loop's own speed: make bench)")

@@ -12,8 +12,8 @@ import pytest
 
 from rtctl import scene as scenes
 from rtctl.cli import main
+from rtctl.engine.replay.resim import compare
 from rtctl.engine.run import run
-from rtctl.replay.resim import compare
 from rtctl.trace import TraceReader, TraceWriter
 
 
@@ -86,7 +86,7 @@ def test_a_difference_of_one_float32_ulp_is_reported_as_last_bit(recorded, tmp_p
 
 
 def test_ulps_count_float32_steps_across_zero():
-    from rtctl.replay.resim import _ulps
+    from rtctl.engine.replay.resim import _ulps
 
     a = np.array([1.0, 0.0, -np.float32(1e-45)], dtype=np.float32)
     b = np.array([np.nextafter(np.float32(1), np.float32(2)), np.float32(1e-45), np.float32(1e-45)], dtype=np.float32)

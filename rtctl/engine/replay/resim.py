@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import safety
-from ..provenance import differences, provenance
-from ..trace import TraceError, TraceReader
+from ... import safety
+from ...provenance import differences, provenance
+from ...trace import TraceError, TraceReader
 from . import scene_of
 
 LAST_BIT_ULPS = 4
@@ -43,7 +43,7 @@ TIMING_BITS = safety.DEADLINE_MISSED | safety.TRACE_DROPPED
 
 
 def _row_names(reader, name):
-    from ..trace_export import row_names
+    from ...trace_export import row_names
 
     return row_names(reader, name)
 
@@ -119,7 +119,7 @@ def compare(rec: TraceReader, new: TraceReader, n: int) -> dict:
 def resim(reader: TraceReader, out_dir=None, overrides=(), say=None) -> dict:
     """Re-run ``reader``'s scene on the simulated rig (into ``out_dir``, else a temporary
     directory) and compare; returns the report (``verdict``, ``exit``, ``line``...)."""
-    from ..engine.run import run
+    from ..run import run
 
     meta = reader.meta
     if meta.get("backend", "sim") != "sim":

@@ -31,7 +31,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    from ..trace_export import open_trace
+    from ...trace_export import open_trace
 
     reader = open_trace(args.trace)
     say = None if args.json else (lambda text: print(f"rtctl: {text}", file=sys.stderr))

@@ -1,6 +1,6 @@
 """``rtctl replay``: what a recorded trace says, checked against the simulation.
 
-Three modes (:mod:`rtctl.replay.cli`):
+Three modes (:mod:`rtctl.engine.replay.cli`):
 
 * ``resim`` (:mod:`.resim`): re-run the recorded scene, overrides and seed on the simulated rig
   and compare the traces record by record: bitwise where the code, libraries and machine match.
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import copy
 
-from ..trace import TraceError
+from ...trace import TraceError
 
 
 def scene_of(reader, overrides=(), backend: str | None = None, model_only: bool = False, latency: bool = False,
@@ -28,7 +28,7 @@ def scene_of(reader, overrides=(), backend: str | None = None, model_only: bool 
     ``io.mismatch`` factor to 1 (the scene's model, not a simulated device's secret);
     ``latency`` fixes ``io.latency_blocks`` at the recorded backend's latency; ``quiet`` sets
     every actuator's ``sense.noise`` to 0 (the model's currents without a sensor's noise)."""
-    from .. import scene as scenes
+    from ... import scene as scenes
 
     meta = reader.meta
     data = meta.get("scene")

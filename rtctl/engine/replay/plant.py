@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..trace import TraceError
+from ...trace import TraceError
 from . import scene_of
 
 WINDOW_S = 0.1
@@ -41,7 +41,7 @@ MATCH_PCT = 1.0
 def simulate(reader, overrides=()):
     """The simulated plant's answer to the recorded drive: sensed currents ``(n, rows, block)``
     (row ``k``: the currents of drive block ``k``) and the true tip, µm, ``(n, channels, block)``."""
-    from ..engine.rig import build
+    from ..rig import build
 
     scene = scene_of(reader, overrides, backend="sim", model_only=True, quiet=True)
     rig = build(scene)

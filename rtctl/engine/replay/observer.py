@@ -17,13 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..trace import TraceError
+from ...trace import TraceError
 from . import scene_of
 
 
 def run_offline(reader, overrides=()):
     """Per block: the offline estimates (µm) and commanded drive rms (V), ``(n, channels)`` each."""
-    from ..engine.rig import build
+    from ..rig import build
 
     scene = scene_of(reader, overrides, backend="sim", latency=True)
     if not (scene.control.observe or scene.control.mode == "closed"):
