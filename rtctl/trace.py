@@ -57,6 +57,10 @@ class TraceError(RtctlError, ValueError):
     """A trace cannot be read: missing, of an unknown format, or not a trace at all."""
 
 
+class TraceMissing(TraceError, FileNotFoundError):
+    """No readable ``trace.json`` (a FileNotFoundError, as the reader raised before formats had versions)."""
+
+
 def _write_all(fd: int, data) -> None:
     view = memoryview(data).cast("B")
     while view:
@@ -246,7 +250,7 @@ class TraceReader:
             if not isinstance(self.layout, dict):
                 raise ValueError("trace.json is not an object")
         except (OSError, ValueError) as e:
-            raise TraceError(f"{self.path}: not a readable rtctl trace ({e})") from None
+            raise TraceMissing(f"{self.path}: not a readable rtctl trace ({e})") from None
         self.format = self.layout.get("format")
         if self.format not in FORMATS:
             raise TraceError(f"{self.path}: trace format {self.format!r} is unknown to rtctl "

@@ -195,6 +195,11 @@ def test_a_missing_trace_is_one_line(tmp_path, capsys, argv):
     assert err.count("\n") == 1 and "no such trace" in err and "Traceback" not in err
 
 
+def test_a_directory_without_a_trace_is_still_a_file_not_found(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not a readable rtctl trace"):
+        TraceReader(tmp_path)
+
+
 def test_info_reads_a_run_directory_and_says_what_made_it(tmp_path, capsys):
     from rtctl.cli import main
 
