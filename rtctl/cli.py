@@ -111,6 +111,9 @@ def _parser() -> argparse.ArgumentParser:
     _tool(sub, "render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main")
     _tool(sub, "sweep", "design sweep on Dask: model, reach, selfsense or run over the product of --vary values "
           "(SCENE --vary KEY=SPEC ...)", "rtctl.cli:_sweep_main")
+    _tool(sub, "replay", "replay a trace: re-run and compare bit by bit (resim), the recorded drive into the "
+          "simulated plant (plant), or through the observer offline (observer) (TRACE [--mode ...])",
+          "rtctl.engine.replay.cli:main")
     b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`, "
                        "`bench control`, `bench realtime`, `bench faults`",
                        description="benchmarks (the loop's own speed: make bench)")
@@ -132,6 +135,24 @@ def _parser() -> argparse.ArgumentParser:
     _tool(esub, "serial", "a Dot/SMA pin controller (firmware + plant) behind a pseudo-terminal (SCENE ...)",
           "rtctl.emulate.serial:main")
     _name_choices(esub)
+    t = sub.add_parser("trace", help="`trace info TRACE`: what a trace holds and how much of it was recovered; "
+                       "`trace export TRACE --format npz|csv|wav`",
+                       description="read a run's trace (a trace directory or a run's output directory)")
+    tsub = t.add_subparsers(dest="trace_command", required=True)
+    ti = tsub.add_parser("info", help="layout, what made it, blocks recovered", description="layout, what made it, "
+                         "blocks recovered (a killed run's torn tail is ignored)")
+    ti.add_argument("trace", metavar="TRACE")
+    ti.add_argument("--json", action="store_true", help="print one JSON object")
+    ti.set_defaults(func=_trace_info)
+    te = tsub.add_parser("export", help="write the trace for numpy (npz), a spreadsheet (csv) or an audio editor "
+                         "(wav: the drive as the amplifier's input sees it)", description="export a trace")
+    te.add_argument("trace", metavar="TRACE")
+    te.add_argument("--format", choices=("npz", "csv", "wav"), default="npz")
+    te.add_argument("--out", metavar="FILE", help="file to write (default TRACE.FORMAT beside the trace directory)")
+    te.add_argument("--volts-per-fs", type=float, metavar="V",
+                    help="wav: drive volts at digital full scale (default the scene's io.volts_per_fs)")
+    te.set_defaults(func=_trace_export)
+    _name_choices(tsub)
     d = sub.add_parser("devices", help="audio, serial and DAQ devices this machine has",
                        description="audio, serial and DAQ devices this machine has")
     d.add_argument("--json", action="store_true", help="print one JSON object")
@@ -352,6 +373,25 @@ def _run_scene(s, out, args) -> int:
               file=sys.stderr)
         return 130
     return 1 if result.summary["faults"] else 0
+
+
+def _trace_info(args) -> int:
+    from .trace_export import format_info, info, open_trace
+
+    d = info(open_trace(args.trace))
+    if args.json:
+        _print_json(d)
+    else:
+        print(format_info(d))
+    return 0
+
+
+def _trace_export(args) -> int:
+    from .trace_export import export, open_trace
+
+    _, line = export(open_trace(args.trace), args.format, args.out, args.volts_per_fs)
+    print(line)
+    return 0
 
 
 def _devices(args) -> int:

@@ -1,14 +1,26 @@
-"""Run traces: one fixed-size record per block, appended in chunks.
+"""Run traces: one fixed-size record per block, appended in checksummed chunks.
 
-A trace is a directory with ``trace.json`` (the layout: record dtype, signal names, units,
-channel names, fs, block, and ``dropped_records``) and ``blocks.bin`` (records back to back, one
-per block). The writer keeps a preallocated chunk of records and appends it to the file when
-full, on :meth:`TraceWriter.flush` and on close, so Ctrl-C or an exception keeps every finished
-block readable; the reader maps the file and ignores a trailing partial record, so even a killed
-process leaves a readable trace. A paced run hands whole records over from its loop thread
-(:mod:`rtctl.engine.ring`) and they are appended as they are (:meth:`TraceWriter.append`); a
-record the loop had to drop (its ring full) is written as a placeholder (:meth:`TraceWriter.gap`:
-NaN data, status ``TRACE_DROPPED``), and ``dropped_records`` counts them.
+A trace is a directory of three files:
+
+* ``trace.json``: the layout (``format``, the record dtype, signal names, units, channel names,
+  fs, block, ``meta``), rewritten only whole (a new file renamed over the old one), so a killed
+  process never leaves half of it;
+* ``blocks.bin``: the records back to back, one per block (a reader maps it);
+* ``chunks.bin``: one 16-byte entry per append, written after the records it covers: the first
+  record's index (uint64), the record count (uint32) and the CRC-32 of their bytes (uint32).
+
+The writer appends a chunk when its buffer is full, when :data:`FLUSH_S` has passed since the
+last append (so a killed process loses at most that much, whatever the block size), on
+:meth:`TraceWriter.flush` and on close; each append goes to the operating system at once (no
+user-space buffer), where it survives the process. The reader keeps the records of the chunks
+whose checksums hold, in order, and ignores the rest: a torn tail (records or an entry the
+process was killed while writing) or anything after a chunk that fails its checksum. It says
+what it recovered (:meth:`TraceReader.recovery`).
+
+A paced run hands whole records over from its loop thread (:mod:`rtctl.engine.ring`) and they are
+appended as they are (:meth:`TraceWriter.append`); a record the loop had to drop (its ring full)
+is written as a placeholder (:meth:`TraceWriter.gap`: NaN data, status ``TRACE_DROPPED``), and
+``dropped_records`` counts them.
 
 >>> import tempfile
 >>> d = tempfile.mkdtemp()
@@ -23,11 +35,43 @@ from __future__ import annotations
 
 import json
 import os
+import time
+import zlib
 from pathlib import Path
 
 import numpy as np
 
+from .errors import RtctlError
+
 HEADER_FIELDS = [("block", "<i8"), ("status", "<i4"), ("compute_us", "<f4")]
+#: The format this writer writes, and every format the reader reads (1: no checksums).
+FORMAT = "rtctl-trace-2"
+FORMATS = ("rtctl-trace-1", FORMAT)
+#: A chunk index entry.
+CHUNK = np.dtype([("first", "<u8"), ("n", "<u4"), ("crc", "<u4")])
+#: Longest time records wait in the writer's buffer before an append, s.
+FLUSH_S = 0.02
+
+
+class TraceError(RtctlError, ValueError):
+    """A trace cannot be read: missing, of an unknown format, or not a trace at all."""
+
+
+class TraceMissing(TraceError, FileNotFoundError):
+    """No readable ``trace.json`` (a FileNotFoundError, as the reader raised before formats had versions)."""
+
+
+def _write_all(fd: int, data) -> None:
+    view = memoryview(data).cast("B")
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def _replace_json(path: Path, doc: dict) -> None:
+    """Write ``doc`` to ``path`` whole: a temporary file renamed over it."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=1))
+    os.replace(tmp, path)
 
 
 class TraceWriter:
@@ -45,11 +89,15 @@ class TraceWriter:
     channels : list of str
         Channel names, for readers.
     chunk : int
-        Records buffered before an append.
+        Most records buffered before an append.
+    meta : dict, optional
+        Stored as ``meta`` in ``trace.json`` (what made the trace: scene, versions, ...).
+    flush_s : float
+        Longest time a record waits in the buffer (checked when a record is added).
     """
 
     def __init__(self, path, signals: dict, fs: float, block: int, channels, chunk: int = 64,
-                 meta: dict | None = None):
+                 meta: dict | None = None, flush_s: float = FLUSH_S):
         self.path = Path(path)
         self.path.mkdir(parents=True, exist_ok=True)
         fields = list(HEADER_FIELDS)
@@ -66,9 +114,11 @@ class TraceWriter:
         self._n = 0
         self.blocks = 0
         self.dropped = 0
+        self.flush_s = float(flush_s)
+        self._last = time.monotonic()
         self._gap = None
-        self._layout = layout = {
-            "format": "rtctl-trace-1",
+        self._layout = {
+            "format": FORMAT,
             "dtype": [list(f) if len(f) == 2 else [f[0], f[1], list(f[2])] for f in fields],
             "units": {name: spec[0] for name, spec in signals.items()},
             "per_block": per_block,
@@ -78,12 +128,23 @@ class TraceWriter:
             "meta": meta or {},
             "dropped_records": 0,
         }
-        (self.path / "trace.json").write_text(json.dumps(layout, indent=1))
-        self._f = open(self.path / "blocks.bin", "wb")
+        for name in ("blocks.bin", "chunks.bin"):  # an earlier trace's files: gone before the new layout
+            (self.path / name).unlink(missing_ok=True)
+        _replace_json(self.path / "trace.json", self._layout)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0)
+        self._data = os.open(self.path / "blocks.bin", flags, 0o644)
+        self._index = os.open(self.path / "chunks.bin", flags, 0o644)
+        self._entry = np.zeros(1, dtype=CHUNK)
+        self._written = 0  # records in blocks.bin
+
+    @property
+    def closed(self) -> bool:
+        return self._data < 0
 
     def next(self) -> np.void:
-        """The next record to fill (a view into the chunk buffer); flushes a full chunk first."""
-        if self._n == len(self._buf):
+        """The next record to fill (a view into the chunk buffer); appends the buffer first when
+        it is full or its oldest record has waited ``flush_s``."""
+        if self._n == len(self._buf) or (self._n and time.monotonic() - self._last >= self.flush_s):
             self.flush()
         rec = self._buf[self._n]
         rec["block"] = self.blocks
@@ -93,9 +154,9 @@ class TraceWriter:
 
     def append(self, records: np.ndarray) -> None:
         """Append whole records (of :attr:`dtype`, their ``block`` fields already set) after
-        the buffered ones."""
+        the buffered ones, as one chunk."""
         self.flush()
-        self._f.write(memoryview(records).cast("B"))
+        self._chunk(records)
         self.blocks += len(records)
 
     def gap(self, n: int) -> None:
@@ -106,32 +167,58 @@ class TraceWriter:
         if self._gap is None:
             from .safety import TRACE_DROPPED
 
-            self._gap = np.zeros(1, dtype=self.dtype)
+            self._gap = np.zeros(256, dtype=self.dtype)
             for name in self.dtype.names[2:]:
                 self._gap[name] = np.nan
             self._gap["status"] = TRACE_DROPPED
         self.flush()
-        for _ in range(n):
-            self._gap["block"] = self.blocks
-            self._f.write(memoryview(self._gap).cast("B"))
-            self.blocks += 1
+        done = 0
+        while done < n:
+            m = min(n - done, len(self._gap))
+            g = self._gap[:m]
+            g["block"] = np.arange(self.blocks, self.blocks + m)
+            self._chunk(g)
+            self.blocks += m
+            done += m
         self.dropped += n
 
     def flush(self) -> None:
-        """Append the buffered records to the file."""
+        """Append the buffered records to the file (one chunk)."""
         if self._n:
-            self._f.write(memoryview(self._buf[: self._n]).cast("B"))
-            self._f.flush()
+            self._chunk(self._buf[: self._n])
             self._n = 0
 
+    def started(self, monotonic_ns: int) -> None:
+        """Note when the run's clock started (CLOCK_MONOTONIC, ns; paced runs): block ``k`` was
+        due ``k`` periods after it. Recorded in ``trace.json`` as ``clock_start_ns``."""
+        self._layout["clock_start_ns"] = int(monotonic_ns)
+        _replace_json(self.path / "trace.json", self._layout)
+
+    def _chunk(self, records: np.ndarray) -> None:
+        records = np.ascontiguousarray(records)
+        e = self._entry
+        e["first"] = self._written
+        e["n"] = len(records)
+        e["crc"] = zlib.crc32(memoryview(records).cast("B"))
+        _write_all(self._data, records)
+        _write_all(self._index, e)  # after the records: an entry never covers bytes not yet written
+        self._written += len(records)
+        self._last = time.monotonic()
+
     def close(self) -> None:
-        if not self._f.closed:
+        if self._data < 0:
+            return
+        try:
             self.flush()
-            os.fsync(self._f.fileno())
-            self._f.close()
-            if self.dropped:
-                self._layout["dropped_records"] = self.dropped
-                (self.path / "trace.json").write_text(json.dumps(self._layout, indent=1))
+            os.fsync(self._data)
+            os.fsync(self._index)
+        finally:
+            os.close(self._data)
+            os.close(self._index)
+            self._data = self._index = -1
+        self._layout["dropped_records"] = self.dropped
+        self._layout["closed"] = True
+        _replace_json(self.path / "trace.json", self._layout)
 
     def __enter__(self):
         return self
@@ -141,28 +228,101 @@ class TraceWriter:
 
 
 class TraceReader:
-    """Read a trace written by :class:`TraceWriter` (complete records only)."""
+    """Read a trace written by :class:`TraceWriter`: the records of its checksummed chunks, in
+    order, up to the first that is missing, torn or fails its checksum.
 
-    def __init__(self, path):
+    Parameters
+    ----------
+    path : str or Path
+        The trace directory.
+    verify : bool
+        Check every chunk's CRC-32 (reads the whole file once); without it only the chunk
+        index's record counts bound what is kept.
+
+    Raises :class:`TraceError` (one line) for a directory that is no trace or of a format this
+    version does not read.
+    """
+
+    def __init__(self, path, verify: bool = True):
         self.path = Path(path)
         try:
             self.layout = json.loads((self.path / "trace.json").read_text())
+            if not isinstance(self.layout, dict):
+                raise ValueError("trace.json is not an object")
         except (OSError, ValueError) as e:
-            raise FileNotFoundError(f"{self.path}: not a readable rtctl trace ({e})") from None
-        fields = [tuple(f) if len(f) == 2 else (f[0], f[1], tuple(f[2])) for f in self.layout["dtype"]]
-        self.dtype = np.dtype(fields)
-        size = (self.path / "blocks.bin").stat().st_size
-        self.n_blocks = size // self.dtype.itemsize
-        if self.n_blocks:
-            self.records = np.memmap(self.path / "blocks.bin", dtype=self.dtype, mode="r", shape=(self.n_blocks,))
-        else:
-            self.records = np.zeros(0, dtype=self.dtype)
-        self.fs = float(self.layout["fs"])
-        self.block = int(self.layout["block"])
-        self.channels = self.layout["channels"]
-        self.units = self.layout["units"]
+            raise TraceMissing(f"{self.path}: not a readable rtctl trace ({e})") from None
+        self.format = self.layout.get("format")
+        if self.format not in FORMATS:
+            raise TraceError(f"{self.path}: trace format {self.format!r} is unknown to rtctl "
+                             f"(it reads {', '.join(FORMATS)}); read it with the rtctl that wrote it")
+        try:
+            fields = [tuple(f) if len(f) == 2 else (f[0], f[1], tuple(f[2])) for f in self.layout["dtype"]]
+            self.dtype = np.dtype(fields)
+            self.fs = float(self.layout["fs"])
+            self.block = int(self.layout["block"])
+            self.channels = self.layout["channels"]
+            self.units = self.layout["units"]
+            size = (self.path / "blocks.bin").stat().st_size
+        except (OSError, KeyError, TypeError, ValueError) as e:
+            raise TraceError(f"{self.path}: not a readable rtctl trace ({type(e).__name__}: {e})") from None
+        self.size = size
+        whole = size // self.dtype.itemsize
+        #: whether the writer closed the trace (else its process ended first)
+        self.closed = bool(self.layout.get("closed", False))
+        #: record index of a chunk that failed its checksum (None: none did)
+        self.bad_chunk = None
+        self.checksummed = self.format != "rtctl-trace-1"
+        self.n_blocks = self._check(whole, verify) if self.checksummed else whole
+        #: bytes of blocks.bin beyond the records kept (a torn tail, or records after a bad chunk)
+        self.torn_bytes = size - self.n_blocks * self.dtype.itemsize
+        self.records = self._map(self.n_blocks)
         #: placeholder records (status ``TRACE_DROPPED``) in place of records the loop dropped
-        self.dropped = int(self.layout.get("dropped_records", 0))
+        self.dropped = int(self.layout.get("dropped_records", 0)) if self.closed else self._count_dropped()
+
+    def _map(self, n: int):
+        if n:
+            return np.memmap(self.path / "blocks.bin", dtype=self.dtype, mode="r", shape=(n,))
+        return np.zeros(0, dtype=self.dtype)
+
+    def _check(self, whole: int, verify: bool) -> int:
+        """Records covered by the valid prefix of the chunk index."""
+        p = self.path / "chunks.bin"
+        raw = p.read_bytes() if p.exists() else b""
+        entries = np.frombuffer(raw[: len(raw) // CHUNK.itemsize * CHUNK.itemsize], dtype=CHUNK)
+        data = self._map(whole)
+        n = 0
+        for e in entries:
+            first, count = int(e["first"]), int(e["n"])
+            if first != n or n + count > whole:
+                break
+            if verify and zlib.crc32(memoryview(np.ascontiguousarray(data[n:n + count])).cast("B")) != int(e["crc"]):
+                self.bad_chunk = n
+                break
+            n += count
+        return n
+
+    def _count_dropped(self) -> int:
+        from .safety import TRACE_DROPPED
+
+        return int(np.count_nonzero(np.asarray(self.records["status"]) & TRACE_DROPPED)) if self.n_blocks else 0
+
+    def recovery(self) -> str:
+        """One line: how many blocks were read, and what was left out and why."""
+        secs = self.n_blocks * self.block / self.fs
+        head = f"{self.n_blocks} blocks ({secs:.3f} s)"
+        if self.bad_chunk is not None:
+            return (f"{head} recovered; the chunk from record {self.bad_chunk} fails its checksum: it and the "
+                    f"{self.torn_bytes} bytes after it are left out")
+        if not self.checksummed:
+            return f"{head} (format {self.format}: no checksums)"
+        if self.closed and not self.torn_bytes:
+            return f"{head}, closed by its writer, every chunk's checksum holds"
+        torn = f"; a torn tail of {self.torn_bytes} bytes ignored" if self.torn_bytes else ""
+        return f"{head} recovered (the writing process ended before closing it){torn}"
+
+    @property
+    def meta(self) -> dict:
+        return self.layout.get("meta", {})
 
     def signal(self, name: str, row: int | None = None) -> np.ndarray:
         """A per-sample signal as float64 ``(rows, n_blocks * block)``, or a per-block one as

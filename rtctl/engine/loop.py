@@ -24,6 +24,7 @@ import numpy as np
 from .. import safety
 from .._codegen import fence
 from .._numba import kernel
+from ..trace import FLUSH_S
 from . import pace, realtime
 from .pace import settle
 from .ring import DROPPED, READ, WRITE, Drain, TraceRing, published, push, release, slots_for
@@ -160,14 +161,15 @@ class Loop:
 
     def run(self, n_blocks: int, times: np.ndarray, lates: np.ndarray, missed: np.ndarray, faults: list) -> LoopResult:
         rig, paced, period_ns = self.rig, self.paced, self.period_ns
+        st = pace.new_state(self.spin_s if paced else 0.0)
         if self.ring is not None:
             # started before this thread asks for a real-time priority or a CPU: it inherits neither
             pinned = self.cpu if self.ask_os else -1
             below = max(1, self.priority - 10) if self.ask_os and self.priority > 0 else 0
+            # a pass at least every FLUSH_S: a killed process loses at most about that much trace
             self.drain = Drain(self.ring, self.writer, self.bar, realtime.other_cpus(pinned), below,
-                               0.05 if self.strict else 0.01)
+                               FLUSH_S if self.strict else 0.01, st[pace.START:pace.START + 1] if paced else None)
             self.drain.start()
-        st = pace.new_state(self.spin_s if paced else 0.0)
         session = realtime.enter(paced, self.ask_os, self.priority, self.cpu)
         for note in session.notes:
             self.say(f"realtime: {note}")

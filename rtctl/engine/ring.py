@@ -187,11 +187,19 @@ class Drain(threading.Thread):
         interval. Refused: it stays SCHED_OTHER.
     poll_s : float
         Sleep between passes while the ring is empty (fewer passes: fewer moments with the GIL).
+        Every pass appends what is published, so a record reaches the file (and survives a killed
+        process) at most about this long after the loop published it.
+    clock : int64 array of one element, optional
+        The loop's clock start (CLOCK_MONOTONIC ns, 0 until it starts), noted in the trace
+        (:meth:`rtctl.trace.TraceWriter.started`) once it is set: what a reader measures lost
+        blocks against.
     """
 
-    def __init__(self, ring: TraceRing, writer, bar, cpus=None, priority: int = 0, poll_s: float = 0.05):
+    def __init__(self, ring: TraceRing, writer, bar, cpus=None, priority: int = 0, poll_s: float = 0.02,
+                 clock=None):
         super().__init__(name="rtctl-trace-drain", daemon=True)
         self.ring, self.writer, self.bar, self.cpus, self.poll_s = ring, writer, bar, cpus, poll_s
+        self.clock = clock
         self.priority = int(priority)
         self.read = 0          # slots consumed
         self.next_block = 0    # the block index the next record written must carry
@@ -224,6 +232,9 @@ class Drain(threading.Thread):
                     pass
             while True:
                 stop = self._stop_at
+                if self.clock is not None and self.clock[0]:
+                    self.writer.started(int(self.clock[0]))
+                    self.clock = None
                 if self._pass():
                     continue
                 if stop is not None:

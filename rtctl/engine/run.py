@@ -121,11 +121,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         signals = rig.trace_signals()
         if paced and not dev.callback:
             signals[LATE_FIELD] = ("us", 1, 0)
-        writer = TraceWriter(out / "trace", signals, fs, block, rig.channel_names,
-                             meta={"scene": scene.to_dict(), "source": scene.source,
-                                   "overrides": list(scene.overrides), "sensed_rows": rig.sensed_names,
-                                   "latency_blocks": scene.io.latency_blocks or int(rig.device.latency_blocks),
-                                   "limits": rig.limiter.bounds()})
+        writer = TraceWriter(out / "trace", signals, fs, block, rig.channel_names, meta=trace_meta(scene, rig))
     times = np.zeros(n_blocks)
     lates = np.zeros(n_blocks)
     missed = np.zeros(n_blocks, dtype=np.bool_)
@@ -189,7 +185,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     if out is not None:
         from .report import channel_rows
 
-        reader = TraceReader(out / "trace")
+        reader = TraceReader(out / "trace", verify=False)  # just written and closed here: its counts suffice
         if report:
             summary["channels"] = channel_rows(rig, reader, run_blocks)
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -198,6 +194,28 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
 
             make_plot(summary, reader, out / "plot.png", run_blocks)
     return RunResult(summary, interrupted, out)
+
+
+def trace_meta(scene, rig) -> dict:
+    """What a trace records about its run, for readers and ``rtctl replay``: the scene (validated,
+    overrides applied; its file's text and SHA-256 as they were), overrides, seed, backend,
+    device, latency, the sensed rows' names, the limiter's bounds (for the trace checker) and the versions (:mod:`rtctl.provenance`)."""
+    import hashlib
+
+    from ..provenance import provenance
+
+    try:
+        text = Path(scene.source).read_text()
+    except (OSError, ValueError):  # a scene made from a string has no file
+        text = None
+    io = scene.io
+    return {"scene": scene.to_dict(), "scene_name": scene.scene.name, "source": scene.source,
+            "scene_text": text, "scene_sha256": hashlib.sha256(text.encode()).hexdigest() if text is not None else None,
+            "overrides": list(scene.overrides), "seed": io.seed, "backend": io.backend,
+            "device": io.port if io.backend == "serial" else io.device,
+            "sensed_rows": rig.sensed_names,
+            "latency_blocks": io.latency_blocks or int(rig.device.latency_blocks),
+            "limits": rig.limiter.bounds(), "rtctl": provenance()}
 
 
 def _percentiles(x: np.ndarray) -> dict:
