@@ -534,6 +534,9 @@ SCENE = Table(
                 "min_blob_area": Key("float", 12.6e-6, "m^2", "smallest valid blob (beat; seed 004)", 0.0, 1e-3),
                 "beat_band": Key("floats", (0.3, 40.0), "Hz", "f_l, f_h of the beat frequency", 0.0, 1000.0, length=2),
                 "carrier_band": Key("floats", (40.0, 400.0), "Hz", "f_pl, f_ph of the carrier", 0.0, 5000.0, length=2),
+                "normalize": Key("str", "field", "", "beat: valid-blob counts over the most the unit's receptive fields "
+                                 "can hold ('field', seed 004) or over the image's densest place ('image')",
+                                 choices=("field", "image")),
                 "text": Key("str", "", "", "text shown in Braille when kind = 'braille'"),
                 "dots": Key("int", 8, "", "Braille cell dots (6 or 8)", 6, 8),
                 "shape": Key("str", "square", "", "shape shown when kind = 'shape'", choices=("square", "frame", "cross", "hline", "vline", "disc", "ring", "triangle", "diagonal")),

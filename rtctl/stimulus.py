@@ -286,7 +286,7 @@ class RenderStage:
             if st.px_size:
                 kw["px_size"] = st.px_size
             kw.update(min_blob_area=st.min_blob_area, beat_band=tuple(st.beat_band),
-                      carrier_band=tuple(st.carrier_band))
+                      carrier_band=tuple(st.carrier_band), normalize=st.normalize)
         if st.method == "roi":
             kw["threshold"] = st.threshold
         self.renderer = make_renderer(st.method, **kw).prepare(image)

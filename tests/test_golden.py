@@ -20,6 +20,13 @@ def test_every_bundled_scene_has_a_golden():
 
 
 @pytest.mark.parametrize("name", scene.bundled())
+def test_every_golden_run_kept_the_limiters_promises(name):
+    """The stored golden itself was checked sample by sample (rtctl check-trace) and passed."""
+    inv = golden.load(name)["invariants"]
+    assert inv["ok"] is True and not any(inv["violations"].values()), inv
+
+
+@pytest.mark.parametrize("name", scene.bundled())
 def test_the_scene_matches_its_golden(name):
     """A difference names the quantity, row and frame; `python -m rtctl.engine.golden` shows all
     of them and rewrites the goldens when the change is meant."""

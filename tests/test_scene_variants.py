@@ -45,3 +45,15 @@ def test_every_bundled_scene_has_a_variant():
     from rtctl import scene
 
     assert set(scene.bundled()) == set(VARIANTS)
+
+
+def test_stimulus_normalize_reaches_the_beat_renderer():
+    """`stimulus.normalize` picks the beat renderer's normalising count (seed 004's physiological
+    maximum by default, the image's densest place on request): the scene key is not ignored."""
+    from rtctl import scene
+    from rtctl.engine.rig import build
+
+    base = ["stimulus.kind=image", "stimulus.method=beat", f"stimulus.image={PHOTO}"]
+    field = build(scene.load("line-bimorph-5", base)).stimulus.render.renderer
+    image = build(scene.load("line-bimorph-5", base + ["stimulus.normalize=image"])).stimulus.render.renderer
+    assert (field.normalize, image.normalize) == ("field", "image")
