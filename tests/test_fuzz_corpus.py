@@ -1,0 +1,53 @@
+"""The hand-made nasty inputs of tests/corpus, each with the words its one-line error must hold
+(tests/corpus/README.md). Many were found by the fuzz tests (tests/test_fuzz_*.py) and guard the
+fixes they led to."""
+
+import json
+from pathlib import Path
+
+import pytest
+from fuzzing import clean_or_clear, run_cli
+
+from rtctl import scene
+from rtctl.errors import SceneError
+
+CORPUS = Path(__file__).with_name("corpus")
+
+
+def _expect(kind):
+    return json.loads((CORPUS / kind / "expect.json").read_text(encoding="utf-8"))
+
+
+def test_every_corpus_file_says_what_it_must_produce():
+    for kind in ("scene", "image", "serial", "trace"):
+        files = {p.name for p in (CORPUS / kind).iterdir() if p.name != "expect.json"}
+        assert files == set(_expect(kind)), kind
+
+
+def _check(result, want, *names):
+    if want == "ok":
+        assert not isinstance(result, Exception), result
+        return
+    assert isinstance(result, Exception), f"accepted, expected an error with {want}"
+    for w in [*want, *names]:
+        assert w in str(result), (w, str(result))
+
+
+@pytest.mark.parametrize("name", sorted(_expect("scene")))
+def test_scene_files(name):
+    path = CORPUS / "scene" / name
+    result = clean_or_clear(scene.load, path, errors=SceneError)
+    _check(result, _expect("scene")[name], str(path))
+    status, _, err = run_cli(["check", str(path)])
+    assert status == (0 if _expect("scene")[name] == "ok" else 2), err
+
+
+SETS = json.loads((CORPUS / "set.json").read_text(encoding="utf-8"))
+
+
+@pytest.mark.parametrize("case", SETS, ids=[f"{i}-{c['item'][:24]}" for i, c in enumerate(SETS)])
+def test_set_items(case):
+    result = clean_or_clear(scene.load, case["scene"], [case["item"]], errors=SceneError)
+    _check(result, case["expect"])
+    status, _, _ = run_cli(["check", case["scene"], f"--set={case['item']}"])
+    assert status == (0 if case["expect"] == "ok" else 2)
