@@ -19,6 +19,7 @@ import math
 import os
 import re
 import signal
+import warnings
 
 from hypothesis import HealthCheck, settings
 
@@ -71,8 +72,12 @@ def run_cli(argv):
     """``rtctl ARGV`` in this process: (status, stdout, stderr). A status 2 has exactly one
     ``rtctl: error:`` line on stderr; status 3 (internal error) fails."""
     out, err = io.StringIO(), io.StringIO()
-    with hang_guard(), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+    with hang_guard(), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
+            warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         status = main(list(argv))
+    # a warning prints lines of its own on stderr (pytest would hide them)
+    assert not caught, f"rtctl {argv!r} warned: {[str(w.message) for w in caught]}"
     lines = err.getvalue().splitlines()
     assert status != 3, f"rtctl {argv!r}: internal error: {err.getvalue()!r}"
     if status == 2:  # one line; argparse's usage errors have the usage line before it

@@ -3,10 +3,12 @@
 fixes they led to."""
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
-from fuzzing import clean_or_clear, run_cli
+from fuzzing import clean_or_clear, one_line, run_cli
 
 from rtctl import scene
 from rtctl.errors import SceneError
@@ -51,3 +53,37 @@ def test_set_items(case):
     _check(result, case["expect"])
     status, _, _ = run_cli(["check", case["scene"], f"--set={case['item']}"])
     assert status == (0 if case["expect"] == "ok" else 2)
+
+
+def test_image_files_in_bounded_memory():
+    """Every corpus image through load_image in one child process that may map at most 1.5 GiB:
+    a loader that believed a lying header would fail to allocate there instead of passing."""
+    script = (
+        "import json, resource, sys\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (3 << 29, 3 << 29))\n"
+        "from rtctl.render.image import load_image\n"
+        "from rtctl.errors import RtctlError\n"
+        "out = {}\n"
+        "for p in sys.argv[1:]:\n"
+        "    try:\n"
+        "        a = load_image(p); out[p] = ['ok', list(a.shape), str(a.dtype)]\n"
+        "    except RtctlError as e:\n"
+        "        out[p] = ['error', str(e)]\n"
+        "    except BaseException as e:\n"
+        "        out[p] = ['bug', f'{type(e).__name__}: {e}']\n"
+        "print(json.dumps(out))\n"
+    )
+    want = _expect("image")
+    paths = [str(CORPUS / "image" / n) for n in sorted(want)]
+    p = subprocess.run([sys.executable, "-c", script, *paths], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    got = json.loads(p.stdout)
+    for path in paths:
+        kind, *rest = got[path]
+        w = want[Path(path).name]
+        assert kind != "bug", (path, rest)
+        if w == "ok":
+            assert kind == "ok" and rest[1] == "uint8", (path, rest)
+        else:
+            assert kind == "error", (path, rest)
+            one_line(rest[0], path, *w)
