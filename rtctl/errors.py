@@ -23,3 +23,7 @@ class DeviceError(RtctlError, OSError):
 
 class RunAborted(RtctlError, RuntimeError):
     """The loop stopped on a fault after ramping the outputs to zero."""
+
+
+class TraceError(RtctlError, ValueError):
+    """A trace directory's layout or records cannot be read as an rtctl trace."""

@@ -27,7 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import TraceError
+
 HEADER_FIELDS = [("block", "<i8"), ("status", "<i4"), ("compute_us", "<f4")]
+#: ``trace.json``'s ``format``: the layout and record format this module writes and reads.
+FORMAT = "rtctl-trace-1"
 
 
 class TraceWriter:
@@ -68,7 +72,7 @@ class TraceWriter:
         self.dropped = 0
         self._gap = None
         self._layout = layout = {
-            "format": "rtctl-trace-1",
+            "format": FORMAT,
             "dtype": [list(f) if len(f) == 2 else [f[0], f[1], list(f[2])] for f in fields],
             "units": {name: spec[0] for name, spec in signals.items()},
             "per_block": per_block,
@@ -149,9 +153,11 @@ class TraceReader:
             self.layout = json.loads((self.path / "trace.json").read_text())
         except (OSError, ValueError) as e:
             raise FileNotFoundError(f"{self.path}: not a readable rtctl trace ({e})") from None
-        fields = [tuple(f) if len(f) == 2 else (f[0], f[1], tuple(f[2])) for f in self.layout["dtype"]]
-        self.dtype = np.dtype(fields)
-        size = (self.path / "blocks.bin").stat().st_size
+        self.dtype = _check_layout(self.layout, self.path)
+        try:
+            size = (self.path / "blocks.bin").stat().st_size
+        except OSError as e:
+            raise FileNotFoundError(f"{self.path}: not a readable rtctl trace (blocks.bin: {e.strerror})") from None
         self.n_blocks = size // self.dtype.itemsize
         if self.n_blocks:
             self.records = np.memmap(self.path / "blocks.bin", dtype=self.dtype, mode="r", shape=(self.n_blocks,))
@@ -187,3 +193,49 @@ class TraceReader:
     def time(self) -> np.ndarray:
         """Sample times, s."""
         return np.arange(self.n_blocks * self.block) / self.fs
+
+
+def _check_layout(layout, path: Path) -> np.dtype:
+    """The record dtype of a ``trace.json`` layout, after checking every field the reader uses;
+    anything else (another format, a damaged or hand-edited file) is one :class:`TraceError`."""
+
+    def bad(what: str) -> TraceError:
+        return TraceError(f"{path}: not a readable rtctl trace: trace.json {what}")
+
+    if not isinstance(layout, dict):
+        raise bad(f"is a JSON {type(layout).__name__}, not an object")
+    if layout.get("format") != FORMAT:
+        raise bad(f"format {_short(layout.get('format'))}: this rtctl reads {FORMAT!r}")
+    fs, block = layout.get("fs"), layout.get("block")
+    if isinstance(fs, bool) or not isinstance(fs, (int, float)) or not (0 < fs < float("inf")):
+        raise bad(f"fs = {_short(fs)}: not a positive sample rate")
+    if isinstance(block, bool) or not isinstance(block, int) or block < 1:
+        raise bad(f"block = {_short(block)}: not a positive integer")
+    per_block = layout.get("per_block", [])
+    for key, kind in (("channels", list), ("units", dict), ("per_block", list), ("dtype", list)):
+        if not isinstance(layout.get(key, per_block), kind):
+            raise bad(f"{key}: not a JSON {'array' if kind is list else 'object'}")
+    dropped = layout.get("dropped_records", 0)
+    if isinstance(dropped, bool) or not isinstance(dropped, int) or dropped < 0:
+        raise bad(f"dropped_records = {_short(dropped)}: not a count")
+    try:
+        fields = [tuple(f) if len(f) == 2 else (f[0], f[1], tuple(f[2])) for f in layout["dtype"]]
+        dtype = np.dtype(fields)
+    except (TypeError, ValueError, IndexError, KeyError) as e:
+        raise bad(f"dtype is not a record type ({_short(str(e), 80)})") from None
+    names = dtype.names or ()
+    if [(n, dtype[n].str) for n in names[:3]] != [(n, np.dtype(t).str) for n, t in HEADER_FIELDS]:
+        raise bad(f"dtype does not start with the record header {[n for n, _ in HEADER_FIELDS]}")
+    for n in names[3:]:
+        sub = dtype[n]
+        want = 1 if n in per_block else 2
+        if sub.base.kind != "f" or len(sub.shape) != want or (want == 2 and sub.shape[1] != block):
+            raise bad(f"field {_short(n)}: {sub.str} {sub.shape} is not a float signal of "
+                      f"{'(rows,)' if want == 1 else f'(rows, {block})'}")
+    return dtype
+
+
+def _short(v, n: int = 40) -> str:
+    """``v`` for a one-line message: repr (escapes newlines), at most ``n`` characters."""
+    s = " ".join(repr(v).split())
+    return s if len(s) <= n else s[: n - 3] + "..."

@@ -36,7 +36,8 @@ def load_image(path) -> np.ndarray:
     Parameters
     ----------
     path : str or os.PathLike
-        Any format OpenCV decodes (PNG, JPEG, BMP, TIFF, ...).
+        A format both Pillow (which reads the header) and OpenCV (which decodes) know: PNG,
+        JPEG, BMP, TIFF, GIF, WebP, PPM/PGM, ...
 
     Returns
     -------
