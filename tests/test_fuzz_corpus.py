@@ -12,6 +12,7 @@ from fuzzing import clean_or_clear, one_line, run_cli
 
 from rtctl import scene
 from rtctl.errors import SceneError
+from rtctl.io import protocol as P
 
 CORPUS = Path(__file__).with_name("corpus")
 
@@ -87,3 +88,41 @@ def test_image_files_in_bounded_memory():
         else:
             assert kind == "error", (path, rest)
             one_line(rest[0], path, *w)
+
+
+@pytest.fixture(scope="module")
+def firmware():
+    from rtctl.emulate.serial import Firmware
+
+    return Firmware(scene.load("dot-4x4"), chunk_s=1e-3)
+
+
+def _label(wire):
+    (a,) = P.Decoder().feed(wire)
+    assert a.error is None
+    return f"NACK:{a.body[0]}" if a.kind == P.NACK else P.TYPE_NAMES[a.kind]
+
+
+@pytest.mark.parametrize("name", sorted(n for n in _expect("serial") if n.startswith("device-")))
+def test_serial_streams_into_the_device(firmware, name):
+    data = (CORPUS / "serial" / name).read_bytes()
+    answers = [_label(firmware.on_frame(f, 0.0)) for f in P.Decoder().feed(data)]
+    assert answers == _expect("serial")[name]["answers"]
+
+
+@pytest.mark.parametrize("name", sorted(n for n in _expect("serial") if n.startswith("host-")))
+def test_serial_streams_into_the_host(name):
+    from test_fuzz_serial import _backend
+
+    be, dev, out = _backend()
+    try:
+        out[:, -1] = 5.0  # every pin UP: the first write sends PINS with sequence number 1
+        assert be.write() == 0 and be._inflight.seq == 1
+        dev.sendall((CORPUS / "serial" / name).read_bytes())
+        be.read()
+        stats = be.stats()
+        for key, want in _expect("serial")[name].items():
+            assert stats[key] == want, (key, stats)
+    finally:
+        be.close()
+        dev.close()
