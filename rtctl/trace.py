@@ -178,9 +178,10 @@ class TraceReader:
         if row is not None:
             return np.asarray(rec[:, row], dtype=float).reshape(-1)
         a = np.asarray(rec, dtype=float)
-        if name in self.layout["per_block"]:
+        if name in self.layout.get("per_block", ()):
             return a.T.copy()
-        return a.transpose(1, 0, 2).reshape(a.shape[1], -1)
+        # explicit sizes: a signal of no rows (pin displays sense nothing) has nothing to infer -1 from
+        return a.transpose(1, 0, 2).reshape(a.shape[1], a.shape[0] * a.shape[2])
 
     @property
     def status(self) -> np.ndarray:
@@ -211,10 +212,10 @@ def _check_layout(layout, path: Path) -> np.dtype:
         raise bad(f"fs = {_short(fs)}: not a positive sample rate")
     if isinstance(block, bool) or not isinstance(block, int) or block < 1:
         raise bad(f"block = {_short(block)}: not a positive integer")
-    per_block = layout.get("per_block", [])
+    per_block = layout.setdefault("per_block", [])  # absent: no per-block signals
     for key, kind in (("channels", list), ("units", dict), ("per_block", list), ("dtype", list)):
-        if not isinstance(layout.get(key, per_block), kind):
-            raise bad(f"{key}: not a JSON {'array' if kind is list else 'object'}")
+        if not isinstance(layout.get(key), kind):
+            raise bad(f"{key}: missing or not a JSON {'array' if kind is list else 'object'}")
     dropped = layout.get("dropped_records", 0)
     if isinstance(dropped, bool) or not isinstance(dropped, int) or dropped < 0:
         raise bad(f"dropped_records = {_short(dropped)}: not a count")

@@ -11,7 +11,7 @@ import pytest
 from fuzzing import clean_or_clear, one_line, run_cli
 
 from rtctl import scene
-from rtctl.errors import SceneError
+from rtctl.errors import RtctlError, SceneError
 from rtctl.io import protocol as P
 
 CORPUS = Path(__file__).with_name("corpus")
@@ -126,3 +126,19 @@ def test_serial_streams_into_the_host(name):
     finally:
         be.close()
         dev.close()
+
+
+@pytest.mark.parametrize("name", sorted(_expect("trace")))
+def test_trace_directories(name):
+    from rtctl.trace import TraceReader
+
+    path = CORPUS / "trace" / name
+    r = clean_or_clear(TraceReader, path, errors=(RtctlError, OSError), names=[str(path)])
+    want = _expect("trace")[name]
+    if isinstance(want, dict):  # readable: every signal, with the records that are complete
+        assert not isinstance(r, Exception), r
+        assert r.n_blocks == want["n_blocks"]
+        for sig in r.dtype.names[3:]:
+            assert r.signal(sig).shape[1] in (r.n_blocks, r.n_blocks * r.block)
+    else:
+        _check(r, want)
