@@ -22,7 +22,7 @@ def _expect(kind):
 
 
 def test_every_corpus_file_says_what_it_must_produce():
-    for kind in ("scene", "image", "serial", "trace"):
+    for kind in ("scene", "image", "serial", "trace", "calibration"):
         files = {p.name for p in (CORPUS / kind).iterdir() if p.name != "expect.json"}
         assert files == set(_expect(kind)), kind
 
@@ -142,3 +142,12 @@ def test_trace_directories(name):
             assert r.signal(sig).shape[1] in (r.n_blocks, r.n_blocks * r.block)
     else:
         _check(r, want)
+
+
+@pytest.mark.parametrize("name", sorted(_expect("calibration")))
+def test_calibration_files(name):
+    from rtctl.engine.calibrate import read
+
+    path = CORPUS / "calibration" / name
+    result = clean_or_clear(read, path, scene.load("line-bimorph-5"), errors=SceneError)
+    _check(result, _expect("calibration")[name], str(path))
