@@ -501,8 +501,6 @@ def summary_of(calibration, doc=None) -> dict | None:
     return out
 
 
-
-
 def _short(v, n: int = 60) -> str:
     """``repr(v)`` cut to ``n`` characters, for one-line messages about what a file holds."""
     r = repr(v)

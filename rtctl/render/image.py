@@ -82,9 +82,9 @@ def load_image(path) -> np.ndarray:
 
 def _check_header(p: str) -> tuple[str | None, str | None]:
     """Refuse huge images from the header alone, before decoding allocates the pixels; return
-    the format and mode Pillow found. A file whose header Pillow cannot read is refused too: OpenCV reads
-    some formats Pillow does not (Radiance HDR, PAM), and would allocate whatever size their
-    header claims before finding the pixels missing."""
+    the format and mode Pillow found. A file whose header Pillow cannot read is refused too:
+    OpenCV reads some formats Pillow does not (Radiance HDR, PAM, PFM), and would allocate
+    whatever size their header claims before finding the pixels missing."""
     try:
         from PIL import Image  # matplotlib depends on Pillow; it reads sizes without decoding
     except ImportError:  # pragma: no cover - then the decoded array is checked instead
