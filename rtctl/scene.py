@@ -182,15 +182,19 @@ def _parse_toml(text: str, origin: str) -> dict:
         raise SceneError(f"{origin}: an integer literal with more than {_max_digits()} digits") from None
 
 
+#: a one-line TOML string, basic or literal: the dots of a long text in one do not count
+_QUOTED = re.compile(r'"(?:[^"\\]|\\.)*"|\'[^\']*\'')
+
+
 def _check_dots(text: str, origin: str) -> None:
     """Refuse absurdly deep dotted keys before parsing: tomllib's time grows with the square of a
     key's depth (a 20000-part key takes seconds, a 100000-part one minutes)."""
     if text.count(".") <= MAX_LINE_DOTS:
         return
     for n, line in enumerate(text.splitlines(), 1):
-        if line.count(".") > MAX_LINE_DOTS:
-            raise SceneError(f"{origin}: line {n} has more than {MAX_LINE_DOTS} dots; no scene key is nested "
-                             "that deep")
+        if line.count(".") > MAX_LINE_DOTS and _QUOTED.sub("", line).count(".") > MAX_LINE_DOTS:
+            raise SceneError(f"{origin}: line {n} has more than {MAX_LINE_DOTS} dots outside strings; no scene "
+                             "key is nested that deep")
 
 
 def _max_digits() -> int:
@@ -202,7 +206,7 @@ def _max_digits() -> int:
 
 def parse_value(text: str) -> Any:
     """A TOML literal (``1e-3``, ``[1, 2]``, ``true``, ``"x"``, ``{k = 1}``), else the bare string."""
-    if text.count(".") > MAX_LINE_DOTS:  # see _check_dots
+    if text.count(".") > MAX_LINE_DOTS and _QUOTED.sub("", text).count(".") > MAX_LINE_DOTS:  # see _check_dots
         return text
     try:
         doc = tomllib.loads(f"v = {text}")
