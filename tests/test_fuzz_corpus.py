@@ -151,3 +151,13 @@ def test_calibration_files(name):
     path = CORPUS / "calibration" / name
     result = clean_or_clear(read, path, scene.load("line-bimorph-5"), errors=SceneError)
     _check(result, _expect("calibration")[name], str(path))
+
+
+VARIES = json.loads((CORPUS / "vary.json").read_text(encoding="utf-8"))
+
+
+@pytest.mark.parametrize("case", VARIES, ids=[f"{i}-{c['item'][:24]}" for i, c in enumerate(VARIES)])
+def test_vary_specs(case):
+    from rtctl.sweep.spec import parse
+
+    _check(clean_or_clear(parse, case["item"], errors=RtctlError), case["expect"])

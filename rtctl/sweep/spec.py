@@ -117,6 +117,8 @@ def _range(spec: str, where: str) -> tuple[list, bool]:
         raise RtctlError(f"{where}: a and b must be finite, got {_short(spec)}")
     if n < 1 or (n == 1 and a != b):
         raise RtctlError(f"{where}: n must be >= 2 (or 1 with a = b), got {n}")
+    if n > MAX_POINTS:  # before spacing them: 0:1:10000000000 would fill memory for minutes
+        raise RtctlError(f"{where}: n = {n} values, more than {MAX_POINTS}; narrow the range")
     if log and not (a > 0 and b > 0):
         raise RtctlError(f"{where}: a log range needs a > 0 and b > 0, got {_short(spec)}")
     if n == 1:
