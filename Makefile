@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.rtctl-installed
 
-.PHONY: demo test test-all bench docs golden clean
+.PHONY: demo test test-all fuzz bench docs golden clean
 
 # Set-up, once per pyproject change: the system libraries of the audio path (tools/sysdeps.sh
 # installs them where it can, else prints the command), then the package with its test extras.
@@ -19,6 +19,13 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# The parsers' fuzz tests (scene TOML, --set/--vary, images, serial frames, traces) with
+# FUZZ_EXAMPLES random examples per test; `make test` runs a fixed, derandomized few of each.
+# Failing examples are kept in .hypothesis/ and tried first on the next run (docs/fuzzing.md).
+FUZZ_EXAMPLES ?= 2000
+fuzz: $(STAMP)
+	RTCTL_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(PY) -m pytest -q --hypothesis-show-statistics tests/test_fuzz_*.py
 
 # The suite on Python 3.10-3.13, each in a rebuilt .venv-3.X (fresh resolve), after the same
 # system set-up as `make test`; one line per version at the end (tools/test_all.sh).

@@ -31,3 +31,7 @@ class RunAborted(RtctlError, RuntimeError):
 
 class OutputError(RtctlError, OSError):
     """An output directory or file cannot be written: names the path, the cause and the fix."""
+
+
+class TraceError(RtctlError, ValueError):
+    """A trace directory's layout or records cannot be read as an rtctl trace."""

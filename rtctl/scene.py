@@ -31,6 +31,10 @@ else:  # pragma: no cover - exercised on 3.10 only
     import tomli as tomllib
 
 BUNDLED_DIR = Path(__file__).with_name("scenes")
+#: Largest scene file or text: scenes are kilobytes; this keeps a wrong file from being read whole.
+MAX_SCENE_BYTES = 1 << 20
+#: Most dots on one line of a scene: scene keys are a few levels deep (see :func:`_check_dots`).
+MAX_LINE_DOTS = 256
 # Names only: the values live with the physics in rtctl.plant.materials (kept light here so
 # validating a scene never imports a model).
 BUILTIN_MATERIALS = ("PZT-5A", "PZT-5H", "PVDF")
@@ -141,11 +145,13 @@ def load(source: str | Path, overrides: Sequence[str] = ()) -> Scene:
     """
     path = resolve(source)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as e:
-        raise SceneError(f"{path}: not valid TOML: {e}") from None
+        if path.stat().st_size > MAX_SCENE_BYTES:  # before reading: a stray multi-GB file is not read
+            raise SceneError(f"{path}: {path.stat().st_size} bytes; a scene file is at most "
+                             f"{MAX_SCENE_BYTES >> 20} MiB (kilobytes in practice)")
+        text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
         raise SceneError(f"{path}: cannot read: {e}") from None
+    data = _parse_toml(text, str(path))
     for item in overrides:
         apply_override(data, item, origin=str(path))
     return Scene(validate(data, str(path)), str(path), overrides)
@@ -153,13 +159,46 @@ def load(source: str | Path, overrides: Sequence[str] = ()) -> Scene:
 
 def loads(text: str, overrides: Sequence[str] = (), origin: str = "<scene>") -> Scene:
     """Like :func:`load` for TOML text."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise SceneError(f"{origin}: not valid TOML: {e}") from None
+    data = _parse_toml(text, origin)
     for item in overrides:
         apply_override(data, item, origin=origin)
     return Scene(validate(data, origin), origin, overrides)
+
+
+def _parse_toml(text: str, origin: str) -> dict:
+    """``tomllib.loads`` with its every failure as one line: besides malformed TOML, nesting
+    deeper than the parser's recursion allows and integers longer than Python converts."""
+    if len(text) > MAX_SCENE_BYTES:
+        raise SceneError(f"{origin}: {len(text)} characters; a scene is at most {MAX_SCENE_BYTES >> 20} MiB "
+                         "(kilobytes in practice)")
+    _check_dots(text, origin)
+    try:
+        return tomllib.loads(text.removeprefix("\ufeff"))  # a byte-order mark (Windows editors write one)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{origin}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise SceneError(f"{origin}: arrays or tables nested too deeply to read (no scene key is)") from None
+    except ValueError:  # int(): more than sys.get_int_max_str_digits() digits
+        raise SceneError(f"{origin}: an integer literal with more than {_max_digits()} digits") from None
+
+
+#: a one-line TOML string, basic or literal: the dots of a long text in one do not count
+_QUOTED = re.compile(r'"(?:[^"\\]|\\.)*"|\'[^\']*\'')
+
+
+def _check_dots(text: str, origin: str) -> None:
+    """Refuse absurdly deep dotted keys before parsing: tomllib's time grows with the square of a
+    key's depth (a 20000-part key takes seconds, a 100000-part one minutes)."""
+    if text.count(".") <= MAX_LINE_DOTS:
+        return
+    for n, line in enumerate(text.splitlines(), 1):
+        if line.count(".") > MAX_LINE_DOTS and _QUOTED.sub("", line).count(".") > MAX_LINE_DOTS:
+            raise SceneError(f"{origin}: line {n} has more than {MAX_LINE_DOTS} dots outside strings; no scene "
+                             "key is nested that deep")
+
+
+def _max_digits() -> int:
+    return sys.get_int_max_str_digits() if hasattr(sys, "get_int_max_str_digits") else 4300
 
 
 # ----------------------------------------------------------------------------- overrides
@@ -167,10 +206,14 @@ def loads(text: str, overrides: Sequence[str] = (), origin: str = "<scene>") -> 
 
 def parse_value(text: str) -> Any:
     """A TOML literal (``1e-3``, ``[1, 2]``, ``true``, ``"x"``, ``{k = 1}``), else the bare string."""
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
+    if text.count(".") > MAX_LINE_DOTS and _QUOTED.sub("", text).count(".") > MAX_LINE_DOTS:  # see _check_dots
         return text
+    try:
+        doc = tomllib.loads(f"v = {text}")
+    except (ValueError, RecursionError):  # malformed, an over-long integer, nested too deeply
+        return text
+    # "1\nb = 2" parses as two keys: the value is then the text, not the 1 before a newline
+    return doc["v"] if len(doc) == 1 else text
 
 
 def apply_override(data: dict, item: str, origin: str = "--set") -> None:
@@ -181,11 +224,11 @@ def apply_override(data: dict, item: str, origin: str = "--set") -> None:
     can be added; validation then checks it like a key from the file.
     """
     if "=" not in item:
-        raise SceneError(f"--set {item!r}: expected path.to.key=VALUE")
+        raise SceneError(f"--set {_show(item)}: expected path.to.key=VALUE")
     path, _, raw = item.partition("=")
     parts = [p for p in path.strip().split(".")]
     if not all(parts):
-        raise SceneError(f"--set {item!r}: empty part in key path {path!r}")
+        raise SceneError(f"--set {_show(item)}: empty part in key path {_show(path)}")
     value = parse_value(raw.strip())
     node: Any = data
     for i, part in enumerate(parts[:-1]):
@@ -197,7 +240,7 @@ def apply_override(data: dict, item: str, origin: str = "--set") -> None:
                 node[part] = {}
             node = node[part]
         else:
-            raise SceneError(f"--set {item!r}: {here} is a value, not a table")
+            raise SceneError(f"--set {_show(item)}: {_show(here)} is a value, not a table")
     last = parts[-1]
     if isinstance(node, list):
         idx = _list_index(node, last, path, item)
@@ -205,19 +248,23 @@ def apply_override(data: dict, item: str, origin: str = "--set") -> None:
     elif isinstance(node, dict):
         node[last] = value
     else:
-        raise SceneError(f"--set {item!r}: {'.'.join(parts[:-1])} is a value, not a table")
+        raise SceneError(f"--set {_show(item)}: {_show('.'.join(parts[:-1]))} is a value, not a table")
+
+
+#: an array index in a key path: ASCII digits only (str.isdigit() also takes "²", which int() refuses)
+_INDEX = re.compile(r"-?[0-9]+")
 
 
 def _list_index(items: list, part: str, here: str, item: str) -> int:
-    if part.lstrip("-").isdigit():
+    if _INDEX.fullmatch(part):
         idx = int(part)
         if -len(items) <= idx < len(items):
             return idx
-        raise SceneError(f"--set {item!r}: {here}: index {idx} out of range (have {len(items)} items)")
+        raise SceneError(f"--set {_show(item)}: {_show(here)}: index {idx} out of range (have {len(items)} items)")
     names = [x.get("name") for x in items if isinstance(x, dict)]
     if part in names:
         return names.index(part)
-    raise SceneError(f"--set {item!r}: no item named {part!r} at {here} (have {names})")
+    raise SceneError(f"--set {_show(item)}: no item named {part!r} at {_show(here)} (have {_show(names)})")
 
 
 # ----------------------------------------------------------------------------- validation
@@ -250,7 +297,7 @@ def _table(spec: Table, data: Any, path: str, origin: str, required_ok: bool = F
         more = f" (did you mean {(path + '.' if path else '') + hint[0]!r}?)" if hint else (
             f" (allowed: {', '.join(spec.keys)})"
         )
-        raise SceneError(f"{origin}: unknown key {full!r}{more}")
+        raise SceneError(f"{origin}: unknown key {_show(full)}{more}")
     out: dict[str, Any] = {}
     # an actuator item's type (its sub-tables inherit it): keys of other types must be absent
     kind = data.get("type", kind)
@@ -302,7 +349,8 @@ def _subtable(spec: Table, data: Any, path: str, origin: str, kind: Any = None) 
 def _item_name(x: Any, i: int) -> str:
     """How errors (and ``--set``) address item ``i`` of an array of tables: by name if it has one."""
     name = x.get("name") if isinstance(x, Mapping) else None
-    return name if isinstance(name, str) and name and "." not in name else str(i)
+    ok = isinstance(name, str) and name and "." not in name and len(name) <= 60
+    return name if ok else str(i)
 
 
 def _value(spec: Key, v: Any, path: str, origin: str) -> Any:
@@ -360,13 +408,18 @@ def _cross_checks(s: dict, origin: str) -> None:
     if t["duration"] * t["fs"] < t["block"]:
         raise _fail(origin, "timing.duration", t["duration"],
                     f"shorter than one block ({t['block']} samples at {t['fs']:g} Hz)")
+    name = s["scene"]["name"]
+    if not name or not name.isprintable() or "/" in name or "\\" in name or name in (".", ".."):
+        # it is a path part: the default output directory out/NAME (a "/" would write elsewhere)
+        raise _fail(origin, "scene.name", name, "must be non-empty and printable, without '/' or '\\' "
+                    "(it names the output directory out/NAME)")
     names = [a["name"] for a in s["actuator"]]
     for i, a in enumerate(s["actuator"]):
         p = f"actuator.{a['name']}"
         if names.count(a["name"]) > 1:
             raise _fail(origin, f"actuator.{i}.name", a["name"], "names must be unique")
-        if "." in a["name"] or not a["name"]:
-            raise _fail(origin, f"actuator.{i}.name", a["name"], "must be non-empty without dots")
+        if "." in a["name"] or not a["name"] or not a["name"].isprintable():  # it names channels: NAME.INDEX
+            raise _fail(origin, f"actuator.{i}.name", a["name"], "must be non-empty and printable, without dots")
         if "beam" not in a:
             continue
         segs = a["beam"]["segments"]
@@ -525,12 +578,12 @@ def _event_set(data: dict, key: str, value: Any, where: str) -> None:
             names = [x.get("name") for x in node if isinstance(x, dict)]
             if part in names:
                 node = node[names.index(part)]
-            elif part.isdigit() and int(part) < len(node):
+            elif _INDEX.fullmatch(part) and 0 <= int(part) < len(node):
                 node = node[int(part)]
-            elif part.isdigit():
+            elif _INDEX.fullmatch(part):
                 raise SceneError(f"{where}: {key!r}: {here}: index {int(part)} out of range (have {len(node)} items)")
             else:
-                raise SceneError(f"{where}: {key!r}: no item named {part!r} at {here} (have {names})")
+                raise SceneError(f"{where}: {key!r}: no item named {part!r} at {_show(here)} (have {_show(names)})")
         else:
             node = node.setdefault(part, {})
     node[parts[-1]] = value

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import RtctlError
+from .errors import TraceError
 
 HEADER_FIELDS = [("block", "<i8"), ("status", "<i4"), ("compute_us", "<f4")]
 #: The format this writer writes, and every format the reader reads (1: no checksums).
@@ -51,10 +51,6 @@ FORMATS = ("rtctl-trace-1", FORMAT)
 CHUNK = np.dtype([("first", "<u8"), ("n", "<u4"), ("crc", "<u4")])
 #: Longest time records wait in the writer's buffer before an append, s.
 FLUSH_S = 0.02
-
-
-class TraceError(RtctlError, ValueError):
-    """A trace cannot be read: missing, of an unknown format, or not a trace at all."""
 
 
 class TraceMissing(TraceError, FileNotFoundError):
@@ -247,24 +243,21 @@ class TraceReader:
         self.path = Path(path)
         try:
             self.layout = json.loads((self.path / "trace.json").read_text())
-            if not isinstance(self.layout, dict):
-                raise ValueError("trace.json is not an object")
         except (OSError, ValueError) as e:
             raise TraceMissing(f"{self.path}: not a readable rtctl trace ({e})") from None
-        self.format = self.layout.get("format")
-        if self.format not in FORMATS:
-            raise TraceError(f"{self.path}: trace format {self.format!r} is unknown to rtctl "
+        self.format = self.layout.get("format") if isinstance(self.layout, dict) else None
+        if isinstance(self.layout, dict) and self.format not in FORMATS:
+            raise TraceError(f"{self.path}: trace format {_short(self.format)} is unknown to rtctl "
                              f"(it reads {', '.join(FORMATS)}); read it with the rtctl that wrote it")
+        self.dtype = _check_layout(self.layout, self.path)
         try:
-            fields = [tuple(f) if len(f) == 2 else (f[0], f[1], tuple(f[2])) for f in self.layout["dtype"]]
-            self.dtype = np.dtype(fields)
-            self.fs = float(self.layout["fs"])
-            self.block = int(self.layout["block"])
-            self.channels = self.layout["channels"]
-            self.units = self.layout["units"]
             size = (self.path / "blocks.bin").stat().st_size
-        except (OSError, KeyError, TypeError, ValueError) as e:
-            raise TraceError(f"{self.path}: not a readable rtctl trace ({type(e).__name__}: {e})") from None
+        except OSError as e:
+            raise TraceMissing(f"{self.path}: not a readable rtctl trace (blocks.bin: {e.strerror})") from None
+        self.fs = float(self.layout["fs"])
+        self.block = int(self.layout["block"])
+        self.channels = self.layout["channels"]
+        self.units = self.layout["units"]
         self.size = size
         whole = size // self.dtype.itemsize
         #: whether the writer closed the trace (else its process ended first)
@@ -332,9 +325,10 @@ class TraceReader:
         if row is not None:
             return np.asarray(rec[:, row], dtype=float).reshape(-1)
         a = np.asarray(rec, dtype=float)
-        if name in self.layout["per_block"]:
+        if name in self.layout.get("per_block", ()):
             return a.T.copy()
-        return a.transpose(1, 0, 2).reshape(a.shape[1], -1)
+        # explicit sizes: a signal of no rows (pin displays sense nothing) has nothing to infer -1 from
+        return a.transpose(1, 0, 2).reshape(a.shape[1], a.shape[0] * a.shape[2])
 
     @property
     def status(self) -> np.ndarray:
@@ -347,3 +341,49 @@ class TraceReader:
     def time(self) -> np.ndarray:
         """Sample times, s."""
         return np.arange(self.n_blocks * self.block) / self.fs
+
+
+def _check_layout(layout, path: Path) -> np.dtype:
+    """The record dtype of a ``trace.json`` layout, after checking every field the reader uses;
+    anything else (another format, a damaged or hand-edited file) is one :class:`TraceError`."""
+
+    def bad(what: str) -> TraceError:
+        return TraceError(f"{path}: not a readable rtctl trace: trace.json {what}")
+
+    if not isinstance(layout, dict):
+        raise bad(f"is a JSON {type(layout).__name__}, not an object")
+    if layout.get("format") not in FORMATS:
+        raise bad(f"format {_short(layout.get('format'))}: this rtctl reads {', '.join(FORMATS)}")
+    fs, block = layout.get("fs"), layout.get("block")
+    if isinstance(fs, bool) or not isinstance(fs, (int, float)) or not (0 < fs < float("inf")):
+        raise bad(f"fs = {_short(fs)}: not a positive sample rate")
+    if isinstance(block, bool) or not isinstance(block, int) or block < 1:
+        raise bad(f"block = {_short(block)}: not a positive integer")
+    per_block = layout.setdefault("per_block", [])  # absent: no per-block signals
+    for key, kind in (("channels", list), ("units", dict), ("per_block", list), ("dtype", list)):
+        if not isinstance(layout.get(key), kind):
+            raise bad(f"{key}: missing or not a JSON {'array' if kind is list else 'object'}")
+    dropped = layout.get("dropped_records", 0)
+    if isinstance(dropped, bool) or not isinstance(dropped, int) or dropped < 0:
+        raise bad(f"dropped_records = {_short(dropped)}: not a count")
+    try:
+        fields = [tuple(f) if len(f) == 2 else (f[0], f[1], tuple(f[2])) for f in layout["dtype"]]
+        dtype = np.dtype(fields)
+    except (TypeError, ValueError, IndexError, KeyError) as e:
+        raise bad(f"dtype is not a record type ({_short(str(e), 80)})") from None
+    names = dtype.names or ()
+    if [(n, dtype[n].str) for n in names[:3]] != [(n, np.dtype(t).str) for n, t in HEADER_FIELDS]:
+        raise bad(f"dtype does not start with the record header {[n for n, _ in HEADER_FIELDS]}")
+    for n in names[3:]:
+        sub = dtype[n]
+        want = 1 if n in per_block else 2
+        if sub.base.kind != "f" or len(sub.shape) != want or (want == 2 and sub.shape[1] != block):
+            raise bad(f"field {_short(n)}: {sub.str} {sub.shape} is not a float signal of "
+                      f"{'(rows,)' if want == 1 else f'(rows, {block})'}")
+    return dtype
+
+
+def _short(v, n: int = 40) -> str:
+    """``v`` for a one-line message: repr (escapes newlines), at most ``n`` characters."""
+    s = " ".join(repr(v).split())
+    return s if len(s) <= n else s[: n - 3] + "..."

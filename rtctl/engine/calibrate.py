@@ -424,14 +424,14 @@ def read(path, scene) -> Calibration:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as e:
         raise SceneError(f"{where}: cannot read it: {e}") from None
-    except ValueError as e:
-        raise SceneError(f"{where}: not a calibration file (not JSON: {e})") from None
+    except (ValueError, RecursionError) as e:  # RecursionError: arrays nested thousands deep
+        raise SceneError(f"{where}: not a calibration file (not JSON: {_short(str(e), 120)})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
-        raise SceneError(f"{where}: not a calibration file (format {got!r}, expected {FORMAT!r})")
+        raise SceneError(f"{where}: not a calibration file (format {_short(got)}, expected {FORMAT!r})")
     name = scene.scene.name
     if doc.get("scene") != name:
-        raise SceneError(f"{where}: a calibration of scene {doc.get('scene')!r}, not of {name!r}")
+        raise SceneError(f"{where}: a calibration of scene {_short(doc.get('scene'))}, not of {name!r}")
     groups = doc.get("groups")
     if not isinstance(groups, dict) or not groups:
         raise SceneError(f"{where}: not a calibration file (no groups)")
@@ -439,17 +439,17 @@ def read(path, scene) -> Calibration:
     out = {}
     for gname, entry in groups.items():
         if gname not in bimorph:
-            raise SceneError(f"{where}: group {gname!r} is no bimorph group of this scene "
+            raise SceneError(f"{where}: group {_short(gname)} is no bimorph group of this scene "
                              f"(bimorph groups: {', '.join(bimorph) or 'none'})")
         try:
             factors = {str(k): float(v) for k, v in entry["factors"].items()}
             unc = float(entry["uncertainty_pct"])
-        except (KeyError, TypeError, ValueError, AttributeError):
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError):  # Overflow: 10**400
             raise SceneError(f"{where}: group {gname!r}: not a calibration (needs factors and "
                              "uncertainty_pct)") from None
         bad = [k for k, v in factors.items() if k not in FACTORS or not (math.isfinite(v) and v > 0)]
         if bad or not math.isfinite(unc):
-            raise SceneError(f"{where}: group {gname!r}: factors {bad} unknown or not finite and > 0 "
+            raise SceneError(f"{where}: group {gname!r}: factors {_short(bad)} unknown or not finite and > 0 "
                              f"(allowed: {', '.join(FACTORS)})")
         out[gname] = {"factors": factors, "uncertainty_pct": unc}
     missing = [g for g in bimorph if g not in out]
@@ -501,3 +501,7 @@ def summary_of(calibration, doc=None) -> dict | None:
     return out
 
 
+def _short(v, n: int = 60) -> str:
+    """``repr(v)`` cut to ``n`` characters, for one-line messages about what a file holds."""
+    r = repr(v)
+    return r if len(r) <= n else r[: n - 3] + "..."

@@ -210,6 +210,11 @@ class Decoder:
                 continue
             if not chunk:
                 continue
+            if len(chunk) > self.max_encoded:  # arrived with its delimiter in one piece: the
+                self.bad += 1                  # same verdict as when it arrives byte by byte
+                self.garbage += len(chunk)
+                out.append(Frame(None, None, b"", "over-long run without a delimiter"))
+                continue
             f = decode_packet(chunk)
             if f.error is None:
                 self.frames += 1

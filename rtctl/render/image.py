@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import stat
+import warnings
 
 import cv2
 import numpy as np
@@ -40,7 +41,8 @@ def load_image(path) -> np.ndarray:
     Parameters
     ----------
     path : str or os.PathLike
-        Any format OpenCV decodes (PNG, JPEG, BMP, TIFF, ...).
+        A format both Pillow (which reads the header) and OpenCV (which decodes) know: PNG,
+        JPEG, BMP, TIFF, GIF, WebP, PPM/PGM, ...
 
     Returns
     -------
@@ -70,27 +72,58 @@ def load_image(path) -> np.ndarray:
     size = os.path.getsize(p)
     if size == 0:
         raise ImageError(f"{p}: file is empty (0 bytes); give an image file")
-    _check_header(p)
+    fmt, mode = _check_header(p)
+    if fmt == "JPEG":
+        _check_jpeg_end(p)
+    if mode == "CMYK":  # OpenCV reads its four planes as if the fourth were alpha
+        raise ImageError(f"{p}: CMYK colour (print separations); save it as RGB or grayscale")
     # IMREAD_UNCHANGED keeps 16-bit depth and the alpha channel so we can refuse them plainly
     # instead of letting OpenCV silently convert them.
-    img = cv2.imread(p, cv2.IMREAD_UNCHANGED)
+    try:
+        img = cv2.imread(p, cv2.IMREAD_UNCHANGED)
+    except cv2.error as e:  # e.g. an allocation the header asked for failed
+        why = str(e).strip().splitlines()[-1].split("error: ", 1)[-1]
+        raise ImageError(f"{p}: OpenCV cannot decode it ({why}); give a PNG, JPEG, BMP or TIFF file") from None
     if img is None:
         raise ImageError(f"{p}: not an image OpenCV can read; give a PNG, JPEG, BMP or TIFF file")
     return check_image(img, name=p)
 
 
-def _check_header(p: str) -> None:
-    """Refuse huge images from the header alone, before decoding allocates the pixels."""
+def _check_header(p: str) -> tuple[str | None, str | None]:
+    """Refuse huge images from the header alone, before decoding allocates the pixels; return
+    the format and mode Pillow found. A file whose header Pillow cannot read is refused too:
+    OpenCV reads some formats Pillow does not (Radiance HDR, PAM, PFM), and would allocate
+    whatever size their header claims before finding the pixels missing."""
     try:
         from PIL import Image  # matplotlib depends on Pillow; it reads sizes without decoding
     except ImportError:  # pragma: no cover - then the decoded array is checked instead
-        return
+        return None, None
     try:
-        with Image.open(p) as im:
-            w, h = im.size
-    except Exception:  # not a format Pillow knows: OpenCV decides below
-        return
+        # a damaged header makes Pillow warn (e.g. "Tag data larger than file"): a warning would
+        # print lines of its own; the decoder below decides whether the file is readable
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(p) as im:
+                w, h, fmt, mode = *im.size, im.format, im.mode
+    except Image.DecompressionBombError:  # over twice Pillow's own limit, far above ours
+        raise ImageError(f"{p}: its header declares over {2 * Image.MAX_IMAGE_PIXELS >> 20} Mpx, too large "
+                         f"(limit {MAX_SIDE} px a side and {MAX_PIXELS >> 20} Mpx); downscale it first") from None
+    except Exception:
+        raise ImageError(f"{p}: not an image rtctl can read (no known image header); give a PNG, JPEG, BMP "
+                         "or TIFF file") from None
     _check_size(h, w, p)
+    return fmt, mode
+
+
+def _check_jpeg_end(p: str) -> None:
+    """A JPEG cut short decodes without error in OpenCV, its missing rows flat gray: refuse it.
+    The image ends with an EOI marker (FF D9) after its last start-of-scan (FF DA); marker bytes
+    cannot occur inside the scan data (an FF there is stuffed as FF 00)."""
+    with open(p, "rb") as f:
+        data = f.read()
+    if data.rfind(b"\xff\xd9") < data.rfind(b"\xff\xda"):
+        raise ImageError(f"{p}: truncated JPEG (its data ends before the end-of-image marker); give the "
+                         "whole file")
 
 
 def _check_size(h: int, w: int, name: str) -> None:
@@ -129,7 +162,8 @@ def check_image(img, name: str = "image") -> np.ndarray:
         raise ImageError(f"{name}: shape {img.shape} is not a gray (H, W) or colour (H, W, 3) image")
     if img.dtype != np.uint8:
         bits = 8 * img.dtype.itemsize
-        raise ImageError(f"{name}: {bits}-bit {img.dtype.kind == 'f' and 'float ' or ''}pixels; rendering needs "
+        kind = {"f": "float ", "i": "signed "}.get(img.dtype.kind, "")
+        raise ImageError(f"{name}: {bits}-bit {kind}pixels; rendering needs "
                          "8-bit images: convert it (e.g. cv2.convertScaleAbs(img, alpha=255 / img.max()))")
     _check_size(img.shape[0], img.shape[1], name)
     return np.ascontiguousarray(img)

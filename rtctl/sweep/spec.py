@@ -70,7 +70,7 @@ class Point:
 
 def parse(text: str) -> Vary:
     """One ``KEY=SPEC`` (see the module docstring); a bad one raises RtctlError naming it."""
-    where = f"--vary {text!r}"
+    where = f"--vary {_short(text)}"
     key, eq, spec = text.partition("=")
     keys = tuple(k.strip() for k in key.split(","))
     if not eq or not all(keys) or not all(p for k in keys for p in k.split(".")):
@@ -81,7 +81,7 @@ def parse(text: str) -> Vary:
     elif ":" in spec:
         values, log = _range(spec, where)
     else:
-        raise RtctlError(f"{where}: SPEC must be a:b:n, a:b:n:log or a list [x, y, ...], got {spec!r}")
+        raise RtctlError(f"{where}: SPEC must be a:b:n, a:b:n:log or a list [x, y, ...], got {_short(spec)}")
     if len(set(keys)) != len(keys):
         raise RtctlError(f"{where}: a key is listed twice")
     return Vary(keys, tuple(values), log, text)
@@ -89,14 +89,14 @@ def parse(text: str) -> Vary:
 
 def _list(spec: str, where: str) -> list:
     if not spec.endswith("]"):
-        raise RtctlError(f"{where}: a list SPEC ends with ']', got {spec!r}")
+        raise RtctlError(f"{where}: a list SPEC ends with ']', got {_short(spec)}")
     whole = parse_value(spec)
     if isinstance(whole, list):  # a TOML array: numbers, quoted strings, nested lists
         items = whole
     else:  # bare words: split on commas, each item a TOML literal or a string
         items = [parse_value(x.strip()) for x in spec[1:-1].split(",")]
         if any(x == "" for x in items):
-            raise RtctlError(f"{where}: empty item in the list {spec!r}")
+            raise RtctlError(f"{where}: empty item in the list {_short(spec)}")
     if not items:
         raise RtctlError(f"{where}: the list is empty")
     return items
@@ -106,18 +106,21 @@ def _range(spec: str, where: str) -> tuple[list, bool]:
     parts = [p.strip() for p in spec.split(":")]
     log = len(parts) == 4 and parts[3] == "log"
     if len(parts) not in (3, 4) or (len(parts) == 4 and not log):
-        raise RtctlError(f"{where}: a range SPEC is a:b:n or a:b:n:log, got {spec!r}")
+        raise RtctlError(f"{where}: a range SPEC is a:b:n or a:b:n:log, got {_short(spec)}")
     try:
         a, b = float(parts[0]), float(parts[1])
         n = int(parts[2])
     except ValueError:
-        raise RtctlError(f"{where}: in a:b:n, a and b must be numbers and n a whole number, got {spec!r}") from None
+        raise RtctlError(f"{where}: in a:b:n, a and b must be numbers and n a whole number, "
+                         f"got {_short(spec)}") from None
     if not (math.isfinite(a) and math.isfinite(b)):
-        raise RtctlError(f"{where}: a and b must be finite, got {spec!r}")
+        raise RtctlError(f"{where}: a and b must be finite, got {_short(spec)}")
     if n < 1 or (n == 1 and a != b):
         raise RtctlError(f"{where}: n must be >= 2 (or 1 with a = b), got {n}")
+    if n > MAX_POINTS:  # before spacing them: 0:1:10000000000 would fill memory for minutes
+        raise RtctlError(f"{where}: n = {n} values, more than {MAX_POINTS}; narrow the range")
     if log and not (a > 0 and b > 0):
-        raise RtctlError(f"{where}: a log range needs a > 0 and b > 0, got {spec!r}")
+        raise RtctlError(f"{where}: a log range needs a > 0 and b > 0, got {_short(spec)}")
     if n == 1:
         raw = [a]
     elif log:
@@ -149,7 +152,7 @@ def toml_literal(v) -> str:
         return "[" + ", ".join(toml_literal(x) for x in v) + "]"
     if isinstance(v, dict):
         return "{" + ", ".join(f"{json.dumps(str(k))} = {toml_literal(x)}" for k, x in v.items()) + "}"
-    raise RtctlError(f"cannot write {v!r} as a scene value")
+    raise RtctlError(f"cannot write {_short(v)} as a scene value")
 
 
 def product(varies: list[Vary]) -> list[Point]:
@@ -158,7 +161,7 @@ def product(varies: list[Vary]) -> list[Point]:
     for v in varies:
         for k in v.keys:
             if k in seen:
-                raise RtctlError(f"--vary {v.text!r}: {k} is already varied by --vary {seen[k]!r}")
+                raise RtctlError(f"--vary {_short(v.text)}: {k} is already varied by --vary {_short(seen[k])}")
             seen[k] = v.text
     n = math.prod(len(v.values) for v in varies)
     if n > MAX_POINTS:
@@ -169,3 +172,9 @@ def product(varies: list[Vary]) -> list[Point]:
         sets = tuple(f"{k}={toml_literal(x)}" for v, x in zip(varies, combo) for k in v.keys)
         out.append(Point(i, combo, sets))
     return out
+
+
+def _short(v, n: int = 80) -> str:
+    """``repr(v)`` cut to ``n`` characters: a message quotes what was typed, not 10 kB of it."""
+    r = repr(v)
+    return r if len(r) <= n else r[: n - 3] + "..."
