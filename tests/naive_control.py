@@ -16,8 +16,10 @@ from rtctl.control._kernels import (
     FROZEN,
     GAIN,
     GHAT,
+    GLIVE,
     HOLD,
     LIMSEEN,
+    LIVE_DRIVE,
     MAX_STEP,
     NALL,
     OBS_CH,
@@ -25,6 +27,9 @@ from rtctl.control._kernels import (
     ON,
     PATIENCE,
     REF,
+    RREF,
+    RRUN,
+    RSUM,
     RUN,
     SAT,
     START,
@@ -39,7 +44,7 @@ from rtctl.dsp._kernels import P_AMP, P_FLAG, P_RAMP
 from rtctl.safety import CONTROL_FROZEN, CONTROL_SATURATED
 
 
-def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
+def amplitude_control(est, drive_est, index, target, state, pending, lim_counts, ramp):
     status = 0
     for i in range(state.shape[1]):
         b = index[BANK, i]
@@ -53,8 +58,23 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
         lim = float(lim_counts[:, index[CHANNEL, i]].sum())
         limited, col[LIMSEEN] = lim != col[LIMSEEN], lim
         a = col[CMD]
+        c, j = index[OBS_CH, i], index[OBS_SLOT, i]
+        if col[ON]:
+            u, y = drive_est[c, j, 0], math.hypot(*est[c, j, 0])
+            if u >= LIVE_DRIVE * a and u > 0 and 0 < y < math.inf:
+                col[RSUM] += y / u
+                col[RRUN] += 1
+                if col[RRUN] >= col[HOLD]:
+                    m = col[RSUM] / col[RRUN]
+                    if col[RREF] > 0 and abs(m / col[RREF] - 1) <= AGREE:
+                        col[GLIVE] = m
+                    col[RREF], col[RSUM], col[RRUN] = m, 0.0, 0.0
         starting = not col[ON]
-        if starting or r != col[TPREV]:
+        if not starting and r != col[TPREV] and col[GLIVE] > 0:
+            a = r / col[GLIVE]
+            col[TPREV], col[WAIT] = r, col[WARM]
+            col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+        elif starting or r != col[TPREV]:
             a = r / col[GHAT] if col[GHAT] > 0 else START * r * col[FF]
             col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM]
             col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
@@ -62,8 +82,7 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
             col[WAIT] -= 1
             continue
         else:
-            e = est[index[OBS_CH, i], index[OBS_SLOT, i], 0]
-            y = math.hypot(e[0], e[1])
+            y = math.hypot(*est[c, j, 0])
             col[EST] = y
             if not (0 < y < math.inf and r > 0):
                 col[FROZEN] = 1.0

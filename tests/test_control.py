@@ -29,6 +29,8 @@ class Loop:
         self.pending = np.zeros((N_PEND, n))
         self.lim = np.zeros((3, n), dtype=np.int64)
         self.history = [np.zeros(n)] * (latency + window + 2)  # tip amplitudes, oldest first
+        self.drives = [np.zeros(n)] * (latency + window + 2)  # drive amplitudes, oldest first
+        self.drive_est = np.zeros((n, 1, 2))
         self.amp = np.zeros(n)
         self.truth, self.status = [], 0
         self.ctl.target[ENABLE] = 1.0
@@ -37,10 +39,13 @@ class Loop:
         self.amp = self.pending[P_AMP].copy()  # the oscillator ramps to it over this block
         self.truth.append(self.plant * self.amp)
         self.history = self.history[1:] + [self.truth[-1]]
-        y = np.mean(self.history[-1 - self.latency - self.window + 1: len(self.history) - self.latency], axis=0)
+        self.drives = self.drives[1:] + [self.amp]
+        seen = slice(-1 - self.latency - self.window + 1, len(self.history) - self.latency)
+        y = np.mean(self.history[seen], axis=0)
         self.est[:, 0, 0, 0] = np.nan if nan else y
-        self.status |= amplitude_control(self.est, **self.ctl.args, pending=self.pending, lim_counts=self.lim,
-                                         ramp=float(BLOCK))
+        self.drive_est[:, 0, 0] = np.mean(self.drives[seen], axis=0)  # the drive's lock-in, same window
+        self.status |= amplitude_control(self.est, self.drive_est, **self.ctl.args, pending=self.pending,
+                                         lim_counts=self.lim, ramp=float(BLOCK))
 
     def run(self, n):
         for _ in range(n):
@@ -149,6 +154,10 @@ def test_kernel_matches_its_naive_twin(seed):
     for k in range(300):
         est = np.zeros((n, 1, 9, 2))
         est[:, 0, 0] = rng.normal(0, 2e-5, (n, 2))
+        drive_est = np.zeros((n, 1, 2))
+        drive_est[:, 0, 0] = rng.uniform(0, 150, n) * (rng.uniform(size=n) < 0.8)
+        if k % 13 == 0:
+            ctl.target[TARGET, k % n] = twin[1][TARGET, k % n] = rng.uniform(1e-7, 5e-5)  # a moving target
         if k % 37 == 5:
             est[rng.integers(n), 0, 0, 0] = np.nan
         if k % 11 == 0:
@@ -157,8 +166,8 @@ def test_kernel_matches_its_naive_twin(seed):
             j = rng.integers(n)
             ctl.target[ENABLE, j] = twin[1][ENABLE, j] = float(rng.integers(2))
             ctl.target[TARGET, j] = twin[1][TARGET, j] = rng.uniform(1e-7, 5e-5)
-        sk = amplitude_control(est, ctl.index, ctl.target, ctl.state, pend_k, lim, float(BLOCK))
-        sn = naive(est, twin[0], twin[1], twin[2], pend_n, lim, float(BLOCK))
+        sk = amplitude_control(est, drive_est, ctl.index, ctl.target, ctl.state, pend_k, lim, float(BLOCK))
+        sn = naive(est, drive_est, twin[0], twin[1], twin[2], pend_n, lim, float(BLOCK))
         assert sk == sn
         np.testing.assert_allclose(ctl.state, twin[2], rtol=1e-12, atol=0)
         np.testing.assert_allclose(pend_k, pend_n, rtol=1e-12, atol=0)
@@ -203,3 +212,24 @@ def test_a_drifting_plant_is_followed_at_half_strength():
     assert cmds[k] < cmds[k - 1]  # the tip per volt grew: the drive comes down
     loop.run(6 * k_patience)
     np.testing.assert_allclose(loop.truth[-1][0], 5e-6, rtol=1e-12)
+
+
+def test_a_target_that_moves_every_block_is_driven_at_the_plants_tip_per_volt():
+    """A target that changes every block (a swell) never leaves a window of one command to correct
+    on. The drive for each new target comes from the tip per volt of the windows (tip over the
+    window's own drive), taken once two stretches of them agree: from then on the tip follows the
+    target at the plant's own gain, not at START of a model that is 2x wrong (0.35 of the
+    target)."""
+    loop = Loop([1e-7], [2e-7], [1e-6])
+    targets = 1e-6 * (1.0 + np.arange(300) / 100.0)  # 1 um to 4 um over 300 blocks
+    for r in targets:
+        loop.ctl.target[TARGET, 0] = r
+        loop.block()
+    tip = np.array(loop.truth)[:, 0]
+    # block k plays the command set after block k-1 for that block's target
+    assert tip[2] == pytest.approx(START * 0.5 * targets[1], rel=1e-12)  # the model's, aimed low
+    # two stretches of windows that hold drive (the first stretch from the window's first block)
+    learned = 2 + loop.latency + 2 * loop.ctl.hold
+    np.testing.assert_allclose(tip[2:learned], START * 0.5 * targets[1:learned - 1], rtol=1e-12)
+    settled = loop.latency + loop.window + 2 * loop.ctl.hold + 1
+    np.testing.assert_allclose(tip[settled:], targets[settled - 1:-1], rtol=1e-9)

@@ -28,8 +28,12 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  TRIES,   # fresh estimates since the last correction or the last on-target stretch
  ALL,     # sum of every fresh estimate of the present command, m
  NALL,    # how many
- ) = range(21)
-N_STATE = 21
+ GLIVE,   # tip per volt, the mean of the last stretch of windows that agreed with the one before, m/V
+ RSUM,    # sum of the present stretch's tip per volt of each window (tip over the drive's lock-in)
+ RRUN,    # windows in it
+ RREF,    # the mean of the stretch before, m/V (0: none yet)
+ ) = range(25)
+N_STATE = 25
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -56,6 +60,10 @@ PATIENCE = 4
 #: is a guess (a softer finger than it says lets a beam near its loaded resonance move up to 2x
 #: more), so the tip starts below the target and feedback brings it there without overshoot
 START = 0.7
+#: the tip per volt of a window (tip estimate over the drive's lock-in over the same window) is
+#: learned only while that drive is at least this share of the command: a window still filling
+#: with a starting tone, or holding little drive, gives a ratio dominated by noise
+LIVE_DRIVE = 0.25
 #: an error smaller than this is left alone: a correction blinds the loop for a window, and the
 #: loop then answers a change of the plant a window later
 DEADBAND = 0.002
@@ -73,13 +81,15 @@ def _watch_anew(state, i):
 
 
 @kernel
-def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
+def amplitude_control(est, drive_est, index, target, state, pending, lim_counts, ramp):
     """Set the next block's amplitude of every controlled tone; returns status bits.
 
     Parameters
     ----------
     est : ndarray, shape (n_ch, n_slots, N_EST, 2)
         The observer's latest estimates (row 0: tip deflection phasor, m).
+    drive_est : ndarray, shape (n_ch, n_slots, 2)
+        The observer's lock-in of the drive over the same window (amplitude V, phase rad).
     index : ndarray int64, shape (N_INDEX, n)
         Per controlled tone: the observer channel and slot of its estimate, its oscillator in the
         bank, its drive channel (the limiter's column).
@@ -111,7 +121,32 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
         limited = lim != state[LIMSEEN, i]
         state[LIMSEEN, i] = lim
         a = state[CMD, i]
-        if state[ON, i] == 0.0 or r != state[TPREV, i]:
+        c, j = index[OBS_CH, i], index[OBS_SLOT, i]
+        if state[ON, i] != 0.0:
+            # the plant's tip per volt over the latest window, whatever the drive did in it (a
+            # target that moves every block never gives a window of one command)
+            u = drive_est[c, j, 0]
+            y = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
+            if u >= LIVE_DRIVE * a and u > 0.0 and y > 0.0 and y < math.inf:
+                # followed in stretches as the estimate is: a swell's windows lag their drive
+                # (the tip rings up behind it), and a gain taken from every window at once would
+                # feed that lag back into the drive
+                state[RSUM, i] += y / u
+                state[RRUN, i] += 1.0
+                if state[RRUN, i] >= state[HOLD, i]:
+                    m = state[RSUM, i] / state[RRUN, i]
+                    if state[RREF, i] > 0.0 and abs(m / state[RREF, i] - 1.0) <= AGREE:
+                        state[GLIVE, i] = m
+                    state[RREF, i] = m
+                    state[RSUM, i] = 0.0
+                    state[RRUN, i] = 0.0
+        if state[ON, i] != 0.0 and r != state[TPREV, i] and state[GLIVE, i] > 0.0:
+            # a target step while playing: the drive for it from the latest window's tip per volt
+            a = r / state[GLIVE, i]
+            state[TPREV, i] = r
+            state[WAIT, i] = state[WARM, i]
+            _watch_anew(state, i)
+        elif state[ON, i] == 0.0 or r != state[TPREV, i]:
             # a start or a target step: the drive for the new target from the tip per volt the
             # last fresh estimate showed (what feedback learned), else from the model's
             if state[GHAT, i] > 0.0:
@@ -128,7 +163,6 @@ def amplitude_control(est, index, target, state, pending, lim_counts, ramp):
         else:
             # every block from here on the estimate holds nothing but the present command: watch
             # it until it has been steady for HOLD blocks, then correct on the run's mean
-            c, j = index[OBS_CH, i], index[OBS_SLOT, i]
             y = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
             state[EST, i] = y
             if not (y > 0.0 and y < math.inf and r > 0.0):

@@ -133,8 +133,9 @@ class AmplitudeController:
 
     @property
     def args(self) -> dict:
-        """The stage's arguments after the observer's ``est`` and before the bank's pending and the
-        limiter's counts: ``amplitude_control(est, **args..., pending, lim_counts, ramp)``."""
+        """The stage's arguments after the observer's ``est`` and ``drive_est`` and before the bank's
+        pending and the limiter's counts: ``amplitude_control(est, drive_est, **args..., pending,
+        lim_counts, ramp)``."""
         return {"index": self.index, "target": self.target, "state": self.state}
 
     def reset(self) -> None:

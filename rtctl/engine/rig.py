@@ -350,7 +350,8 @@ class Rig:
                     from ..control import amplitude_control
 
                     stages.append(Stage(f"control {cname}", amplitude_control,
-                                        dict(est=seen.observer.est, **ctl.args, pending=self.bank.pending,
+                                        dict(est=seen.observer.est, drive_est=seen.observer.u_out, **ctl.args,
+                                             pending=self.bank.pending,
                                              lim_counts=self.limiter.counts, ramp=float(self.block)),
                                         reset=ctl.reset))
         stages += [Stage(name, k, dict(enumerate(args)), status) for name, k, args, status in after]

@@ -199,7 +199,8 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
 def trace_meta(scene, rig) -> dict:
     """What a trace records about its run, for readers and ``rtctl replay``: the scene (validated,
     overrides applied; its file's text and SHA-256 as they were), overrides, seed, backend,
-    device, latency, the sensed rows' names, the limiter's bounds (for the trace checker) and the versions (:mod:`rtctl.provenance`)."""
+    device, latency, the sensed rows' names, the limiter's bounds (for the trace checker) and the
+    versions (:mod:`rtctl.provenance`)."""
     import hashlib
 
     from ..provenance import provenance
