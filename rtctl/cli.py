@@ -94,6 +94,8 @@ def _parser() -> argparse.ArgumentParser:
     _tool(sub, "render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main")
     _tool(sub, "sweep", "design sweep on Dask: model, reach, selfsense or run over the product of --vary values "
           "(SCENE --vary KEY=SPEC ...)", "rtctl.cli:_sweep_main")
+    _tool(sub, "warm", "compile scenes' kernels into numba's cache ahead of their first run ([SCENE ...] [--all]; "
+          "default the demo's scene)", "rtctl.engine.warm:main")
     b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`, "
                        "`bench control`, `bench realtime`",
                        description="benchmarks (the loop's own speed: make bench)")
