@@ -1,5 +1,6 @@
-"""``rtctl warm``: a run that stops after a few blocks, and a first run after warming that compiles
-nothing (numba's own compile events, counted in a fresh interpreter with an empty cache)."""
+"""``rtctl warm``: a run that stops after a few blocks; a first run after warming that compiles
+nothing (numba's own compile events, counted in a fresh interpreter); and the same closed loop
+from the cache and freshly compiled, bitwise (no ``reassoc`` in the fastmath set)."""
 
 import os
 import subprocess
@@ -7,6 +8,7 @@ import sys
 import textwrap
 import time
 
+import numpy as np
 import pytest
 
 from rtctl import scene
@@ -35,7 +37,7 @@ def test_notice_prints_only_when_late(capsys):
     assert err == "rtctl: compiling\n"
 
 
-COUNT_COMPILES = textwrap.dedent("""
+RUN_COUNTING_COMPILES = textwrap.dedent("""
     import sys
     from numba.core import event
     compiled = []
@@ -45,22 +47,40 @@ COUNT_COMPILES = textwrap.dedent("""
         def on_end(self, ev):
             pass
     event.register("numba:compile", Count())
-    from rtctl.cli import main
-    code = main(["run", "line-bimorph-5", "--quiet", "--no-plot", "--duration", "0.05", "--out", sys.argv[1]])
-    print("compiled:", code, len(compiled), sorted(set(compiled))[:10])
+    from rtctl import scene
+    from rtctl.engine.run import run
+    res = run(scene.load("line-bimorph-5-closed"), out_dir=sys.argv[1], plot=False, report=False, blocks=400)
+    print("compiled:", len(compiled), sorted(set(compiled))[:10])
 """)
 
 
+def _run_counting(cache, out) -> tuple[int, str]:
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    p = subprocess.run([sys.executable, "-c", RUN_COUNTING_COMPILES, str(out)], env=env, capture_output=True,
+                       text=True, timeout=900)
+    assert p.returncode == 0, p.stderr
+    _, n, names = p.stdout.splitlines()[-1].split(" ", 2)
+    return int(n), names
+
+
 @pytest.mark.slow
-def test_warm_then_run_compiles_nothing(tmp_path):
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
-    warm = subprocess.run([sys.executable, "-m", "rtctl.engine.warm", "line-bimorph-5"], env=env,
-                          capture_output=True, text=True, timeout=900)
+def test_warm_then_run_compiles_nothing_and_matches_a_fresh_compile_bitwise(tmp_path):
+    """After ``rtctl warm`` the demo compiles nothing; and its closed loop, run from the cache,
+    gives bitwise the trace of a run that compiled everything itself (an empty cache)."""
+    warm_cache = tmp_path / "warm"
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(warm_cache))
+    warm = subprocess.run([sys.executable, "-m", "rtctl.engine.warm"], env=env, capture_output=True, text=True,
+                          timeout=900)
     assert warm.returncode == 0, warm.stderr
-    assert "compiling the kernels of line-bimorph-5" in warm.stderr
-    assert "line-bimorph-5 ready" in warm.stderr
-    probe = subprocess.run([sys.executable, "-c", COUNT_COMPILES, str(tmp_path / "out")], env=env,
-                           capture_output=True, text=True, timeout=900)
-    assert probe.returncode == 0, probe.stderr
-    code, n, names = probe.stdout.splitlines()[-1].split(" ", 3)[1:]
-    assert (code, n) == ("0", "0"), names
+    assert "compiling the kernels of line-bimorph-5-closed" in warm.stderr
+    assert "line-bimorph-5-closed ready" in warm.stderr
+    n, names = _run_counting(warm_cache, tmp_path / "from_cache")
+    assert n == 0, names
+    n, _ = _run_counting(tmp_path / "empty", tmp_path / "fresh")
+    assert n > 0  # it did compile
+    a, b = TraceReader(tmp_path / "from_cache" / "trace"), TraceReader(tmp_path / "fresh" / "trace")
+    assert a.n_blocks == b.n_blocks == 401
+    for field in a.records.dtype.names:
+        if field in ("compute_us", "late_us"):  # wall-clock timings
+            continue
+        assert np.array_equal(np.asarray(a.records[field]), np.asarray(b.records[field])), field
