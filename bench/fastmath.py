@@ -71,11 +71,11 @@ def child(flags, scenes, cache: str, pythonpath: str | None = None) -> dict:
     """One child's figures: ``flags`` the fastmath set (None: the package's own), the package
     from ``pythonpath`` (default: as this process finds it), its numba cache in ``cache``."""
     env = dict(os.environ, NUMBA_CACHE_DIR=cache, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
-    if pythonpath is not None:
+    if pythonpath is not None:  # and run there: `python -c` puts its working directory first on sys.path
         env["PYTHONPATH"] = pythonpath
     p = subprocess.run([sys.executable, "-c", CHILD.format(bench=str(HERE)),
                         "null" if flags is None else json.dumps(sorted(flags)), json.dumps(scenes)],
-                       env=env, capture_output=True, text=True, check=True)
+                       env=env, capture_output=True, text=True, check=True, cwd=pythonpath)
     return json.loads(p.stdout.splitlines()[-1])
 
 
