@@ -60,7 +60,12 @@ def main(argv=None) -> int:
     for closed in (False, True):
         for m in modes:
             for c in chans:
-                r = measure(c, m, closed, max(20, a.blocks // max(1, c // 64)))
+                try:
+                    r = measure(c, m, closed, max(20, a.blocks // max(1, c // 64)))
+                except Exception as e:  # noqa: BLE001 - a configuration the engine cannot build: say which
+                    print(f"  {'closed' if closed else 'open  '} modes {m:2d} {c:5d} ch: cannot run "
+                          f"({type(e).__name__}: {str(e).splitlines()[0]})", file=sys.stderr, flush=True)
+                    continue
                 rows.append(r)
                 if not a.json:
                     print(f"  {'closed' if closed else 'open  '} modes {m:2d} ({r['states_per_channel']} states) "
