@@ -58,7 +58,8 @@ for name in json.loads(sys.argv[2]):
         out[name + " (run, wall)"] = run(s, out_dir=tmp, plot=False, report=False).summary["realtime_factor"]
     rig = build(s)
     out[name + " (cpu)"] = cpu_rtf(rig, int(s.timing.duration * s.timing.fs / s.timing.block))
-for label, kw in (("loop48 open", {{}}), ("loop48 observer", {{"observe": True}}), ("loop48 closed", {{"closed": True}})):
+for label, kw in (("loop48 open", {{}}), ("loop48 observer", {{"observe": True}}),
+                  ("loop48 closed", {{"closed": True}})):
     rig = build(scene_for(48, 32, **kw))
     rig.apply_schedule(0)
     out[label + " (wall)"] = time_rig(rig, 0.6)[0]

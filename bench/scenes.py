@@ -23,7 +23,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-
 from fastmath import child
 
 HERE = Path(__file__).resolve().parent

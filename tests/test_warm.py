@@ -84,3 +84,11 @@ def test_warm_then_run_compiles_nothing_and_matches_a_fresh_compile_bitwise(tmp_
         if field in ("compute_us", "late_us"):  # wall-clock timings
             continue
         assert np.array_equal(np.asarray(a.records[field]), np.asarray(b.records[field])), field
+
+
+def test_warm_names_a_bad_scene_in_one_line_before_compiling_anything(capsys):
+    from rtctl.cli import main
+
+    assert main(["warm", "line-bimorph-5", "no-such-scene"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no-such-scene" in err and "compiling" not in err

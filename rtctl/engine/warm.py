@@ -24,14 +24,12 @@ import time
 DEMO = "line-bimorph-5-closed"
 
 
-def warm(name: str) -> float:
-    """Run scene ``name`` (a bundled name or a file) for a few blocks on the simulated backend, so
-    that numba compiles (or loads) everything its run needs; returns the wall seconds taken."""
-    from .. import scene
+def warm(s) -> float:
+    """Run scene ``s`` (loaded with ``io.backend=sim``) for a few blocks, so that numba compiles
+    (or loads) everything its run needs; returns the wall seconds taken."""
     from .run import run
 
     t0 = time.perf_counter()
-    s = scene.load(name, ["io.backend=sim"])
     with tempfile.TemporaryDirectory(prefix="rtctl-warm-") as tmp:
         run(s, out_dir=tmp, plot=False, blocks=4)
     return time.perf_counter() - t0
@@ -47,11 +45,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no messages")
     args = p.parse_args(argv)
     names = list(args.scenes) + (scene.bundled() if args.all else [])
-    for name in names or [DEMO]:
+    scenes = [scene.load(name, ["io.backend=sim"]) for name in names or [DEMO]]  # bad input: one line, first
+    for name, s in zip(names or [DEMO], scenes):
         if not args.quiet:
             print(f"rtctl: compiling the kernels of {name} into numba's cache (once per install or "
                   "change; ~20 s on 2 cores, a few when cached) ...", file=sys.stderr, flush=True)
-        took = warm(name)
+        took = warm(s)
         if not args.quiet:
             print(f"rtctl: {name} ready ({took:.1f} s)", file=sys.stderr, flush=True)
     return 0
