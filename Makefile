@@ -9,7 +9,7 @@ STAMP := $(VENV)/.rtctl-installed
 # Set-up, once per pyproject change: the system libraries of the audio path (tools/sysdeps.sh
 # installs them where it can, else prints the command), then the package with its test extras,
 # then the demo's kernels compiled into numba's cache (rtctl warm), so that the first `make demo`
-# does not sit ~20 s in the compiler. Every step that can take seconds says so first.
+# does not sit 20-40 s in the compiler. Every step that can take seconds says so first.
 $(STAMP): pyproject.toml tools/sysdeps.sh
 	@bash tools/sysdeps.sh
 	@test -x $(PY) || { echo "setup: creating the virtual environment $(VENV)"; $(PYTHON) -m venv $(VENV); }

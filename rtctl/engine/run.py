@@ -110,7 +110,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
 
         scene, calibrated = auto(scene, out_dir, run, say=_stderr if progress else None)
     t_build = time.perf_counter()
-    # A build that compiles (an empty or outdated numba cache) takes ~20 s: say so on a terminal,
+    # A build that compiles (an empty or outdated numba cache) takes 20-40 s: say so on a terminal,
     # as the progress bar does, not a silence (piped output keeps its one line per error).
     notice = _Notice(2.0, "compiling the block function and its kernels (the first run after an install or "
                           "a change; numba caches them for the next runs; `rtctl warm` does it ahead) ...",

@@ -1,6 +1,6 @@
 """``rtctl warm``: compile a scene's kernels into numba's on-disk cache ahead of its first run.
 
-A scene's first run compiles its block function and every kernel in it (the demo: ~20 s of LLVM
+A scene's first run compiles its block function and every kernel in it (the demo: 20-40 s of LLVM
 on a 2-core machine; the cached run after it starts in ~2 s). The set-up step of ``make`` runs
 ``rtctl warm`` once, saying so, so that the first ``make demo`` does not stall silently; the
 cache is stamped with the package (:mod:`rtctl._numba`), so an edit makes the next run or warm
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, s in zip(names or [DEMO], scenes):
         if not args.quiet:
             print(f"rtctl: compiling the kernels of {name} into numba's cache (once per install or "
-                  "change; ~20 s on 2 cores, a few when cached) ...", file=sys.stderr, flush=True)
+                  "change; 20-40 s on 2 cores, a few when cached) ...", file=sys.stderr, flush=True)
         took = warm(s)
         if not args.quiet:
             print(f"rtctl: {name} ready ({took:.1f} s)", file=sys.stderr, flush=True)
