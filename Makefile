@@ -7,11 +7,15 @@ STAMP := $(VENV)/.rtctl-installed
 .PHONY: demo test test-all fuzz bench docs golden clean
 
 # Set-up, once per pyproject change: the system libraries of the audio path (tools/sysdeps.sh
-# installs them where it can, else prints the command), then the package with its test extras.
+# installs them where it can, else prints the command), then the package with its test extras,
+# then the demo's kernels compiled into numba's cache (rtctl warm), so that the first `make demo`
+# does not sit 20-40 s in the compiler. Every step that can take seconds says so first.
 $(STAMP): pyproject.toml tools/sysdeps.sh
 	@bash tools/sysdeps.sh
-	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
+	@test -x $(PY) || { echo "setup: creating the virtual environment $(VENV)"; $(PYTHON) -m venv $(VENV); }
+	@echo "setup: installing rtctl and its dependencies into $(VENV) (pip; a minute or more the first time)"
+	@$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
+	@$(VENV)/bin/rtctl warm
 	@touch $(STAMP)
 
 demo: $(STAMP)

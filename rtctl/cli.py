@@ -114,6 +114,8 @@ def _parser() -> argparse.ArgumentParser:
     _tool(sub, "replay", "replay a trace: re-run and compare bit by bit (resim), the recorded drive into the "
           "simulated plant (plant), or through the observer offline (observer) (TRACE [--mode ...])",
           "rtctl.engine.replay.cli:main")
+    _tool(sub, "warm", "compile scenes' kernels into numba's cache ahead of their first run ([SCENE ...] [--all]; "
+          "default the demo's scene)", "rtctl.engine.warm:main")
     b = sub.add_parser("bench", help="benchmarks: `bench numerics` (work-precision, stability), `bench render`, "
                        "`bench control`, `bench realtime`, `bench faults`",
                        description="benchmarks (the loop's own speed: make bench)")

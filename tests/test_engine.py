@@ -143,10 +143,12 @@ def test_queue_producer_thread_against_a_consumer_thread():
 
 def test_a_scene_gets_only_the_stages_it_needs():
     names = lambda sc: [s.name for s in build(scene.load(*sc)).stages]  # noqa: E731
-    assert names(("line-bimorph-5", ["timing.duration=0.01"])) == ["params", "clear", "oscillators", "limiter"]
+    # the simulated device's read first and its plants last (SimDevice.in_block)
+    assert names(("line-bimorph-5", ["timing.duration=0.01"])) == [
+        "params", "sim read", "clear", "oscillators", "limiter", "sim group 0"]
     assert names(("line-bimorph-5", ["control.observe=true"])) == [
-        "params", "clear", "oscillators", "limiter", "observer lateral"]
-    assert names(("solenoid-3x3", [])) == ["params", "clear", "pulses", "limiter"]
+        "params", "sim read", "clear", "oscillators", "limiter", "observer lateral", "sim group 0"]
+    assert names(("solenoid-3x3", [])) == ["params", "sim read", "clear", "pulses", "limiter", "sim group 0"]
 
 
 @pytest.mark.parametrize("name, over", [("line-bimorph-5", ["control.observe=true"]), ("solenoid-3x3", []),
@@ -158,7 +160,9 @@ def test_the_simulated_device_inside_the_block_function_changes_nothing(name, ov
     from rtctl.io.sim import SimDevice
 
     sc = scene.load(name, [*over, "timing.duration=0.3"])
+    monkeypatch.setattr(SimDevice, "in_block", False)
     a = build(sc)
+    assert "sim read" not in [s.name for s in a.stages]
     monkeypatch.setattr(SimDevice, "in_block", True)
     b = build(sc)
     assert [s.name for s in b.stages][:2] == ["params", "sim read"] and b.stages[-1].name.startswith("sim group")

@@ -61,9 +61,11 @@ print(json.dumps({
     # the block function is composed of exactly the stages the scene needs, and imports only
     # their kernels; the lock-in, pulse trains, ramps and fades were never compiled
     assert d["composed"] == "composed"
-    assert d["stages"] == ["params", "clear", "oscillators", "limiter"]
+    # (the simulated device's read and plant inside it: SimDevice.in_block)
+    assert d["stages"] == ["params", "sim read", "clear", "oscillators", "limiter", "sim group 0"]
     kernels = sorted(ln.split(" import ")[1].split(" as ")[0] for ln in d["imports"])
-    assert kernels == sorted(["drain", "clear", "osc_bank_process", "limit_block"]), kernels
+    assert kernels == sorted(["drain", "deliver", "clear", "osc_bank_process", "limit_block", "sim_group_process",
+                              "group_status"]), kernels
     assert d["compiled"] == {"lockin_process": 0, "pulse_process": 0, "ramp_process": 0, "fade_process": 0}
     assert d["faults"] == []
 

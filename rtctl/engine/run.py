@@ -59,8 +59,26 @@ class _Progress:
             self._bar.close()
 
 
+class _Notice:
+    """A line on stderr if ``cancel`` has not come within ``after`` seconds (a timer thread:
+    compiling releases the GIL often enough for it to print)."""
+
+    def __init__(self, after: float, text: str, enabled: bool):
+        self._timer = None
+        if enabled:
+            import threading
+
+            self._timer = threading.Timer(after, _stderr, (text,))
+            self._timer.daemon = True
+            self._timer.start()
+
+    def cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+
+
 def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress: bool = False,
-        report: bool = True, rig=None) -> RunResult:
+        report: bool = True, rig=None, blocks: int | None = None) -> RunResult:
     """Build the rig for ``scene`` and run it for ``timing.duration``.
 
     Parameters
@@ -76,6 +94,9 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     report : bool
         The per-channel rows (and plot.png) from the trace; a caller that reads the trace itself
         (the calibration's excitation) leaves them out.
+    blocks : int, optional
+        Stop after this many blocks, before ``timing.duration`` (``rtctl warm``: the whole
+        scene's rig, events included, compiled by a run of a few blocks).
 
     With ``control.calibrate = "auto"`` the calibration's measurement and fit run first
     (:func:`rtctl.engine.calibrate.auto`, written to ``out_dir/calibration.json``), and the rig is
@@ -101,12 +122,22 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
 
         scene, calibrated = auto(scene, out_dir, run, say=_stderr if progress else None)
     t_build = time.perf_counter()
-    rig = build(scene) if rig is None else rig
+    # A build that compiles (an empty or outdated numba cache) takes 20-40 s: say so on a terminal,
+    # as the progress bar does, not a silence (piped output keeps its one line per error).
+    notice = _Notice(2.0, "compiling the block function and its kernels (the first run after an install or "
+                          "a change; numba caches them for the next runs; `rtctl warm` does it ahead) ...",
+                     progress and sys.stderr.isatty() and rig is None)
+    try:
+        rig = build(scene) if rig is None else rig
+    finally:
+        notice.cancel()
     build_s = time.perf_counter() - t_build
     if calibrated is not None and out_dir is None:  # auto's temporary file: the rig has read it
         Path(scene.control.calibration).unlink(missing_ok=True)
     fs, block = rig.fs, rig.block
     n_blocks = max(1, math.ceil(scene.timing.duration * fs / block))
+    if blocks is not None:
+        n_blocks = max(1, min(n_blocks, blocks))
     out = Path(out_dir) if out_dir is not None else None
     dev = rig.device
     # Paced to the wall clock: asked for, or the device's clock is the wall's (hardware). Real

@@ -360,10 +360,12 @@ class SimDevice(Backend):
                        for g, ch, sr in groups]
 
     #: Run the simulated groups inside the rig's block function (one call per block instead of
-    #: three: 6 % faster at 48 channels, 28 % for the 5-channel demo) rather than from ``read`` and
-    #: ``write``. Off by default: composing the plant kernels into the block function recompiles
-    #: them with it, which costs about 4 s more on a first run with an empty numba cache.
-    in_block = False
+    #: three, and no numba dispatch of the groups' many arguments from Python) rather than from
+    #: ``read`` and ``write``: 18-29 % less CPU time per block on every bundled scene but
+    #: pvdf-6x8 (4 %), bitwise the same blocks. Composing the plant kernels into the block
+    #: function recompiles them with it, about 4 s more on a run with an empty numba cache, which
+    #: ``rtctl warm`` (the set-up step) takes for the demo.
+    in_block = True
 
     def block_calls(self) -> tuple[list, list] | None:
         """With :attr:`in_block`, the device's work as kernels for the rig's block function,
