@@ -21,8 +21,11 @@ def test_run_stops_after_blocks(tmp_path):
     res = run_mod.run(s, out_dir=tmp_path, plot=False, blocks=4)
     assert res.summary["duration_s"] == pytest.approx(4 * s.timing.block / s.timing.fs, rel=1e-12)
     reader = TraceReader(tmp_path / "trace")
-    # the 4 blocks and the fade to zero after them (one block here) that ends every run
-    assert reader.n_blocks == 5 and reader.signal("drive").shape[-1] == 5 * s.timing.block
+    # the 4 blocks, then the requested stop's fade and the tips' settle tail that end every run
+    stop, per_s = res.summary["stop"], s.timing.fs / s.timing.block
+    tail = round(stop["fade_s"] * per_s) + round(stop["settle_s"] * per_s)
+    assert stop["by"] == "end" and tail > 0
+    assert reader.n_blocks == 4 + tail and reader.signal("drive").shape[-1] == (4 + tail) * s.timing.block
 
 
 def test_notice_prints_only_when_late(capsys):
@@ -79,7 +82,7 @@ def test_warm_then_run_compiles_nothing_and_matches_a_fresh_compile_bitwise(tmp_
     n, _ = _run_counting(tmp_path / "empty", tmp_path / "fresh")
     assert n > 0  # it did compile
     a, b = TraceReader(tmp_path / "from_cache" / "trace"), TraceReader(tmp_path / "fresh" / "trace")
-    assert a.n_blocks == b.n_blocks == 401
+    assert a.n_blocks == b.n_blocks > 400  # the 400 blocks, the stop's fade and the settle tail
     for field in a.records.dtype.names:
         if field in ("compute_us", "late_us"):  # wall-clock timings
             continue

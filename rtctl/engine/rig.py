@@ -51,8 +51,9 @@ class Rig:
     the block function, wherever it runs, is the one writer of every array its stages use.
     """
 
-    def __init__(self, scene):
+    def __init__(self, scene, device_in_block: bool = True):
         self.scene = scene
+        self._want_in_block = device_in_block
         self.fs = float(scene.timing.fs)
         self.block = int(scene.timing.block)
         self.needs = needs(scene)
@@ -150,6 +151,8 @@ class Rig:
                        if (t := finger_states(sim, hardware, g)) is not None]
         self.device = SimDevice(groups, self.out, self.sensed, len(TRUTH_NAMES), hardware.factors,
                                 injector, fingers)
+        if not self._want_in_block:  # driven from outside the block function (rtctl replay --mode plant)
+            self.device.in_block = False
         self.truth = self.device.truth
 
     def _build_backend(self, scene):
@@ -525,8 +528,12 @@ class Rig:
         rec["temperature"][...] = temp
 
 
-def build(scene) -> Rig:
+def build(scene, device_in_block: bool = True) -> Rig:
     """Construct, import and compile exactly what ``scene`` needs.
+
+    ``device_in_block=False`` keeps the simulated device out of the block function: the caller
+    drives it with :meth:`SimDevice.write` and :meth:`SimDevice.read` (a recorded drive replayed
+    into the plant), and :meth:`Rig.step` leaves the plant alone.
 
     Raises
     ------
@@ -534,4 +541,4 @@ def build(scene) -> Rig:
         If the scene needs a component this version of rtctl does not have.
     """
     check_available(scene)
-    return Rig(scene)
+    return Rig(scene, device_in_block)

@@ -5,7 +5,7 @@ Three modes (:mod:`rtctl.engine.replay.cli`):
 * ``resim`` (:mod:`.resim`): re-run the recorded scene, overrides and seed on the simulated rig
   and compare the traces record by record: bitwise where the code, libraries and machine match.
 * ``plant`` (:mod:`.plant`): feed the recorded drive (any backend's) into the simulated plant of
-  the scene's *model* (``io.mismatch`` off) and compare its sensed currents with the recorded
+  the scene's *model* (no simulated device's mismatch) and compare its sensed currents with the recorded
   ones: where the model and the device differ.
 * ``observer`` (:mod:`.observer`): run the recorded drive and sensed currents through the scene's
   observer and controller offline, their estimates and commands beside the recorded ones.
@@ -24,8 +24,8 @@ from ...trace import TraceError
 def scene_of(reader, overrides=(), backend: str | None = None, model_only: bool = False, latency: bool = False,
              quiet: bool = False):
     """The scene a trace was recorded with, as a :class:`rtctl.scene.Scene`, with ``overrides``
-    (``--set`` items) on top; ``backend`` replaces ``io.backend``; ``model_only`` sets every
-    ``io.mismatch`` factor to 1 (the scene's model, not a simulated device's secret);
+    (``--set`` items) on top; ``backend`` replaces ``io.backend``; ``model_only`` removes the
+    simulated device's mismatch table (the scene's model, not a device's secret);
     ``latency`` fixes ``io.latency_blocks`` at the recorded backend's latency; ``quiet`` sets
     every actuator's ``sense.noise`` to 0 (the model's currents without a sensor's noise)."""
     from ... import scene as scenes

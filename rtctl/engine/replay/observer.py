@@ -29,7 +29,7 @@ def run_offline(reader, overrides=()):
     if not (scene.control.observe or scene.control.mode == "closed"):
         raise TraceError(f"{reader.path}: the recorded scene has no observer (control.observe = false, control.mode = "
                          f"{scene.control.mode!r}): add one with --set control.observe=true")
-    rig = build(scene)
+    rig = build(scene, device_in_block=False)  # no plant in the stages: the recorded currents feed them
     drive, sensed = reader.records["drive"], reader.records["sensed"]
     if drive.shape[1:] != rig.out.shape or sensed.shape[1:] != rig.sensed.shape:
         raise TraceError(f"{reader.path}: the recorded scene's rig has drive {rig.out.shape} and sensed "

@@ -2,7 +2,7 @@
 
 Whatever backend recorded the trace (the simulated rig, an audio interface, a DAQ, a serial
 pin controller), its ``drive`` record is what went to the amplifier; here it drives the
-simulated plant of the recorded scene's *model* (``io.mismatch`` off, ``--set`` changes on
+simulated plant of the recorded scene's *model* (no simulated device's mismatch, ``--set`` changes on
 top), block by block, with the scene's events (a finger lifting) at their blocks. The plant's
 sensed currents are compared with the recorded ones: the recorded currents answering drive block
 ``k`` sit in record ``k + L`` (``L``: the backend's latency in blocks; the lag that fits best
@@ -44,7 +44,7 @@ def simulate(reader, overrides=()):
     from ..rig import build
 
     scene = scene_of(reader, overrides, backend="sim", model_only=True, quiet=True)
-    rig = build(scene)
+    rig = build(scene, device_in_block=False)  # the recorded drive, not the block's, reaches the plant
     drive = reader.records["drive"]
     if rig.fs != reader.fs or rig.block != reader.block or drive.shape[1] != rig.n_channels:
         raise TraceError(f"{reader.path}: the recorded scene builds a rig of {rig.n_channels} channels at "
