@@ -258,7 +258,10 @@ def _scenes(args) -> int:
 def _check(args) -> int:
     from .needs import needs, unavailable_message
 
+    from .stimulus import check
+
     s = _load(args)
+    check(s)  # the stimulus compiled as the run compiles it: its errors here, not at run
     n = needs(s)
     if args.json:
         _print_json({"scene": s.scene.name, "valid": True, **n.to_dict(), "modules": list(n.modules)})
