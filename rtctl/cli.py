@@ -257,7 +257,6 @@ def _scenes(args) -> int:
 
 def _check(args) -> int:
     from .needs import needs, unavailable_message
-
     from .stimulus import check
 
     s = _load(args)

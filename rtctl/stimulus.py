@@ -121,7 +121,7 @@ class Stimulus:
             from .dsp._kernels import MAX_RAMP
         pulses = {}  # channel -> (block, freq, duty, high, low): square and pulse tones
         _check_tones(scene, offsets)
-        for i, t in enumerate(scene_tones):
+        for t in scene_tones:
             ch = offsets[t.actuator] + t.channel
             receptor = perception.auto_receptor(t.freq) if t.receptor == "auto" else t.receptor
             thr = perception.threshold_m(t.freq, receptor) if receptor else math.nan

@@ -2,7 +2,6 @@
 the stretches against the signal definitions worked by hand, and the summary of runs whose signal
 ends before the run does against a tone held to the end."""
 
-import numpy as np
 import pytest
 
 from rtctl import scene
@@ -24,7 +23,8 @@ def span(stim, duration=1.0, channel=2):
 
 def test_an_enveloped_burst_is_judged_over_its_sustain():
     sp = span('signals = [{name = "c", type = "sine", freq = 200.0, amp = 30.0},\n'
-              '  {name = "e", type = "adsr", attack = 0.05, decay = 0.05, level = 0.5, sustain = 0.2, release = 0.05},\n'
+              '  {name = "e", type = "adsr", attack = 0.05, decay = 0.05, level = 0.5, sustain = 0.2, '
+              'release = 0.05},\n'
               '  {name = "b", type = "product", of = ["c", "e"]}]\nplay = [{signal = "b", channel = 2, start = 0.1}]')
     assert sp["by"] == "steady"
     assert (sp["from"], sp["to"]) == (0.2 * FS, 0.4 * FS)  # start + attack + decay, + sustain
