@@ -6,6 +6,7 @@ import pytest
 
 from rtctl import scene
 from rtctl.engine.judged import judged_span
+from rtctl.engine.report import print_table
 from rtctl.engine.run import run
 from rtctl.stimulus import Stimulus
 
@@ -72,7 +73,7 @@ def _summary(body, tmp_path, name, duration):
     return run(s, out_dir=str(tmp_path / name), plot=False, progress=False).summary
 
 
-def test_an_open_loop_burst_that_ends_early_reads_as_the_same_tone_held_to_the_end(tmp_path):
+def test_an_open_loop_burst_that_ends_early_reads_as_the_same_tone_held_to_the_end(tmp_path, capsys):
     """line-bimorph-5, 30 V at 200 Hz on channel 2: a burst sustained 0.1 .. 0.6 s in a 1.2 s run is
     judged over its sustain's last 0.25 s; the amplitude is the one the tone held to the end of the
     same run reaches (the old end-of-run judgment read it as ~0 and not felt)."""
@@ -90,6 +91,11 @@ def test_an_open_loop_burst_that_ends_early_reads_as_the_same_tone_held_to_the_e
     assert b["felt"] == t["felt"] and b["threshold_um"] == pytest.approx(t["threshold_um"])
     assert b["settle_ms"] is not None and b["settle_ms"] < 600.0
     assert burst["channels"][0].get("judged") is None  # channels that play nothing: as before
+    print_table(burst)
+    print_table(tone)
+    out = capsys.readouterr().out
+    assert out.count("judged over") == 1 and ("lateral.2: judged over 0.350-0.600 s (the end of its longest steady "
+                                              "stretch; the signal plays 0.050-0.650 s)") in out
 
 
 def test_a_closed_loop_burst_is_judged_against_its_sustained_target(tmp_path):

@@ -124,7 +124,7 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
         if span is not None:  # a played signal: judged over its own stretch, not the run's end
             g = rig.scene.group(rig.channel_groups[ch])
             tail = 3.0 * rig.models.ring_time(g) if g.type == "bimorph" else 0.0
-            w0, w1 = _judge_played(row, span, tip, t, freqs, fs, tail)
+            w0, w1 = _judge_played(row, span, tip, t, freqs, fs, block, tail)
             if target_m is not None and math.isfinite(target_m):  # the level held (at most) there, m
                 target_m = span["level"]
                 row["target_um"] = _um(target_m)
@@ -185,12 +185,14 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
     return rows
 
 
-def _judge_played(row, span, tip, t, freqs, fs, tail) -> tuple[float, float]:
+def _judge_played(row, span, tip, t, freqs, fs, block, tail) -> tuple[float, float]:
     """``row``'s true amplitude (and settle time) over ``span`` (:func:`judged_span`), and
     ``row["judged"]``: the rule, the window the amplitude was taken over (s, returned too) and
     the stretch the signal was active. ``tail``: seconds the plant rings on after the stretch,
     searched too for a peak or a stroke."""
     a, b = span["from"] / fs, span["to"] / fs
+    if span["to"] < len(t):  # the bank starts the change that ends it at its block's start
+        b = max(a, (span["to"] // block) * block / fs)
     by = span["by"]
     w0, w1 = a, b
     ok = tip is not None and bool(np.all(np.isfinite(tip)))
