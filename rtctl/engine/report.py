@@ -466,6 +466,9 @@ def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> N
             bx.set_ylabel("tip um")
             if i == 0:
                 bx.legend(fontsize=7, loc="upper right")
+        j = r.get("judged")
+        if j and (r.get("controlled") or has_tip):  # a played signal: the window its row was judged over
+            bx.axvspan(j["from_s"], j["to_s"], color="C2", alpha=0.2, lw=0)
         for ev in summary.get("events", ()):  # when the finger or a target changed
             for a in fig.axes[-2:] if (r.get("controlled") or has_tip) else fig.axes[-1:]:
                 a.axvline(ev["at"], color="C3", lw=0.8, alpha=0.7)
