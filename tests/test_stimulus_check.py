@@ -40,6 +40,8 @@ BAD = [  # (base, [stimulus] body, words the one line holds)
     (OPEN, f'signals = [{SINE}]\nplay = [{{signal = "a", unit = "um"}}]', "open loop plays volts"),
     (OPEN, 'tones = [{channel = 0, freq = 50.0, voltage = 10.0, shape = "square", beat = 2.0}]',
      "a beat pair needs shape = 'sine'"),
+    (OPEN, 'tones = [{channel = 0, freq = 50.0, voltage = 10.0, shape = "square"}, '
+           '{channel = 0, freq = 60.0, voltage = 10.0, shape = "pulse"}]', "already plays a square/pulse tone"),
     (CLOSED, 'signals = [{name = "a", type = "chirp", freq = 100.0, freq_end = 200.0, duration = 0.1, amp = 5.0}]'
              '\nplay = [{signal = "a"}]\n[control]\nmode = "closed"', "closed loop needs tones of fixed frequency"),
     (CLOSED, 'signals = [{name = "d", type = "dc", amp = 5.0}]\nplay = [{signal = "d"}]\n[control]\nmode = "closed"',
