@@ -87,7 +87,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="override a scene key, e.g. --set stimulus.pattern.channel=3 (repeatable)")
     pl.add_argument("--json", action="store_true", help="print one JSON object")
     pl.add_argument("--duration", type=float, metavar="S",
-                    help="override timing.duration (default: the scene's, or longer to hold the pattern)")
+                    help="override timing.duration (default: the scene's, or longer to hold the pattern); "
+                         "scene events after it are dropped")
     pl.add_argument("--out", metavar="DIR", help="output directory (default out/SCENE_NAME-PATTERN)")
     pl.add_argument("--no-plot", action="store_true", help="skip plot.png")
     pl.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -258,8 +259,10 @@ def _scenes(args) -> int:
 
 def _check(args) -> int:
     from .needs import needs, unavailable_message
+    from .stimulus import check
 
     s = _load(args)
+    check(s)  # the stimulus compiled as the run compiles it: its errors here, not at run
     n = needs(s)
     if args.json:
         _print_json({"scene": s.scene.name, "valid": True, **n.to_dict(), "modules": list(n.modules)})

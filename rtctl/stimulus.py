@@ -51,6 +51,49 @@ class Tone:
     shape: str = "sine"       # sine (oscillator bank) | square | pulse (pulse trains)
 
 
+def check(scene) -> None:
+    """Refuse what building ``scene``'s stimulus would refuse, in the same one line, without
+    building plants, banks or kernels: its tones' combinations, and its signals compiled and put
+    on channels (:func:`rtctl.voices.build`, the code the run uses). ``rtctl check`` calls it, so a
+    bad chirp, product or sequence is caught there, not at ``run``. Rendered stimuli (images,
+    Braille, shapes) are checked when they render, as the run builds.
+
+    Raises
+    ------
+    SceneError
+    """
+    if scene.stimulus.kind != "tones":
+        return
+    from .models import n_channels
+
+    offsets, n = {}, 0
+    for g in scene.actuator:  # the rig's channel numbering: groups one after another
+        offsets[g.name], n = n, n + n_channels(g)
+    _check_tones(scene, offsets)
+    if scene.stimulus.play:
+        from .dsp._kernels import MAX_RAMP  # a constant: importing compiles nothing
+        from .voices import build
+
+        fs = float(scene.timing.fs)
+        build(scene, offsets, fs, float(round(scene.timing.duration * fs)), MAX_RAMP, int(scene.timing.block))
+
+
+def _check_tones(scene, offsets: dict) -> None:
+    """Square and pulse tones: no beat pairs, one per channel."""
+    pulsed = set()
+    for i, t in enumerate(scene.stimulus.tones if scene.stimulus.kind == "tones" else ()):
+        if t.shape == "sine":
+            continue
+        if t.beat > 0:
+            raise SceneError(f"{scene.source}: stimulus.tones.{i}.beat = {t.beat:g}: a beat pair "
+                             "needs shape = 'sine'")
+        ch = offsets[t.actuator] + t.channel
+        if ch in pulsed:
+            raise SceneError(f"{scene.source}: stimulus.tones.{i}: channel {t.actuator}.{t.channel} "
+                             "already plays a square/pulse tone (one per channel)")
+        pulsed.add(ch)
+
+
 class Stimulus:
     """The synthesis a scene needs and the parameter changes due at each block.
 
@@ -77,7 +120,8 @@ class Stimulus:
             from .dsp import OscillatorBank, beat_tones
             from .dsp._kernels import MAX_RAMP
         pulses = {}  # channel -> (block, freq, duty, high, low): square and pulse tones
-        for i, t in enumerate(scene_tones):
+        _check_tones(scene, offsets)
+        for t in scene_tones:
             ch = offsets[t.actuator] + t.channel
             receptor = perception.auto_receptor(t.freq) if t.receptor == "auto" else t.receptor
             thr = perception.threshold_m(t.freq, receptor) if receptor else math.nan
@@ -90,12 +134,6 @@ class Stimulus:
                 tgt = perception.target_m(t.freq, receptor, scene.control.margin_db) if receptor else math.nan
             kb = int(math.floor(t.start * self.fs / self.block))
             if t.shape != "sine":
-                if t.beat > 0:
-                    raise SceneError(f"{scene.source}: stimulus.tones.{i}.beat = {t.beat:g}: a beat pair "
-                                     "needs shape = 'sine'")
-                if ch in pulses:
-                    raise SceneError(f"{scene.source}: stimulus.tones.{i}: channel {t.actuator}.{t.channel} "
-                                     "already plays a square/pulse tone (one per channel)")
                 high, low, duty = (t.voltage, -t.voltage, 0.5) if t.shape == "square" else (t.voltage, 0.0, t.duty)
                 pulses[ch] = (kb, t.freq, duty, high, low)
                 tones.append(Tone(ch, t.freq, 0.0, t.voltage, receptor, thr, tgt, t.start, (t.freq,), t.shape))

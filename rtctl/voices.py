@@ -78,6 +78,10 @@ def build(scene, offsets: dict, fs: float, n_run: float, max_ramp: int, block: i
                 p2 = p if scale == 1.0 else _scaled(p, scale)
                 v = place(p2, ch, gain, n_run, ramp, max_ramp, pl.signal, block)
                 if v is not None:
+                    if closed and g.type != "bimorph":  # the amplitude controller's groups only
+                        raise SceneError(f"{scene.source}: stimulus.play: channel {g.name}.{ch - offsets[g.name]} "
+                                         "plays a tip target but is not under amplitude control (bimorph "
+                                         "groups with self-sensing only)")
                     if v.freq.max() >= fs / 2:
                         raise SceneError(f"{where}.signal = {pl.signal!r}: a tone reaches {v.freq.max():g} Hz, "
                                          f"at or above fs / 2 = {fs / 2:g} Hz")

@@ -126,3 +126,21 @@ def test_a_pattern_plays_through_a_virtual_source():
     level = 0.8 * (0.3 + 0.7 * 0.025 / 0.2) * 100.0
     assert _amp_at(st, 12, t) == pytest.approx(level * 0.375, abs=1e-9)
     assert _amp_at(st, 13, t) == pytest.approx(level * 0.625, abs=1e-9)
+
+
+def test_play_drops_scene_events_after_a_shorter_run_with_one_warning(capsys, tmp_path):
+    """line-bimorph-5-closed has events at 0.8, 1.4 and 1.8 s: `play --duration 1.3` keeps the
+    first and drops the other two in one line; `run --duration 1.3` still refuses them."""
+    s, warnings = pattern_scene("heartbeat.ahap", "line-bimorph-5-closed", duration=1.3)
+    assert s.timing.duration == 1.3 and [ev["at"] for ev in s.get("events")] == [0.8]
+    assert len(warnings) == 1 and "events.1..2 (at 1.4, 1.8 s)" in warnings[0] and "dropped" in warnings[0]
+    s, warnings = pattern_scene("heartbeat.ahap", "line-bimorph-5-closed", duration=1.5)
+    assert [ev["at"] for ev in s.get("events")] == [0.8, 1.4] and "events.2 (at 1.8 s)" in warnings[0]
+    s, warnings = pattern_scene("heartbeat.ahap", "line-bimorph-5-closed")  # the scene's 2.4 s: all kept
+    assert warnings == [] and len(s.get("events")) == 3
+    code, out, err = run_cli(capsys, "play", "heartbeat.ahap", "--scene", "line-bimorph-5-closed", "--duration",
+                             "1.3", "--out", str(tmp_path), "--json", "--no-plot")
+    assert code == 0, err
+    assert err.count("\n") == 1 and "events.1..2" in err and json.loads(out)["duration_s"] == pytest.approx(1.3)
+    code, _, err = run_cli(capsys, "run", "line-bimorph-5-closed", "--duration", "1.3", "--out", str(tmp_path / "r"))
+    assert code == 2 and "events.1.at = 1.4: after the end of the run (1.3 s)" in err

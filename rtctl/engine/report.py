@@ -21,7 +21,11 @@ import math
 import numpy as np
 
 from ..stimulus import END_STOP_TYPES  # pins with no amplitude target
+from .judged import judged_span, played_voices
 
+#: How a played signal's row was judged (rtctl.engine.judged), in the table's words.
+JUDGED = {"steady": "the end of its longest steady stretch", "peak": "its strongest window",
+          "stroke": "half its peak-to-peak stroke"}
 SETTLE_BAND = 0.05  # settled once every later envelope estimate is within 5 % of the final one
 
 
@@ -115,6 +119,25 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             "limited": bool(rig.limiter.counts[:, ch].sum() > 0),
             "limited_by": limited_by(rig.limiter, ch),
         }
+        voices = played_voices(rig, ch)
+        span = judged_span(voices, n) if voices and n else None
+        if span is not None:  # a played signal: judged over its own stretch, not the run's end
+            g = rig.scene.group(rig.channel_groups[ch])
+            tail = 3.0 * rig.models.ring_time(g) if g.type == "bimorph" else 0.0
+            w0, w1 = _judge_played(row, span, tip, t, freqs, fs, block, tail)
+            if target_m is not None and math.isfinite(target_m):  # the level held (at most) there, m
+                target_m = span["level"]
+                row["target_um"] = _um(target_m)
+                if row["true_um"] is not None:
+                    row["error_pct"] = 100.0 * (row["true_um"] * 1e-6 - target_m) / target_m
+            # a peak: the observer's highest estimate from the onset (its window lags the truth)
+            k0 = int(span["on"]) // block if span["by"] != "steady" else int(w0 * fs) // block
+            k1 = n_b if span["by"] != "steady" else -(-int(w1 * fs) // block)
+            _estimate(row, reader, ch, n_b, block / fs, freqs, target_m, blocks=(k0, k1),
+                      peak=span["by"] != "steady")
+            _felt(row, contact)
+            rows.append(row)
+            continue
         if tip is not None and not freqs and n and np.all(np.isfinite(tip)):
             # a rendered stimulus (image, Braille, shape): no tone to fit, so the stroke over
             # the analysis window (half peak-to-peak) says how far the pin moved
@@ -160,6 +183,44 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
         rows.append(row)
     _control(rig, rows)
     return rows
+
+
+def _judge_played(row, span, tip, t, freqs, fs, block, tail) -> tuple[float, float]:
+    """``row``'s true amplitude (and settle time) over ``span`` (:func:`judged_span`), and
+    ``row["judged"]``: the rule, the window the amplitude was taken over (s, returned too) and
+    the stretch the signal was active. ``tail``: seconds the plant rings on after the stretch,
+    searched too for a peak or a stroke."""
+    a, b = span["from"] / fs, span["to"] / fs
+    if span["to"] < len(t):  # the bank starts the change that ends it at its block's start
+        b = max(a, (span["to"] // block) * block / fs)
+    by = span["by"]
+    w0, w1 = a, b
+    ok = tip is not None and bool(np.all(np.isfinite(tip)))
+    if by == "steady":
+        w0 = b - min(analysis_window(b - a, freqs), (b - a) / 2)
+        m = (t >= w0) & (t < b)
+        if ok and m.sum() > 2 * len(freqs) + 2:
+            amp = float(fit_amplitudes(tip[m], t[m], freqs).sum())
+            row["true_um"] = amp
+            seg = t < b
+            st = settle_time(tip[seg], t[seg], freqs, span["on"] / fs, amp)  # from the onset
+            row["settle_ms"] = None if st is None else 1e3 * st
+    else:
+        w1 = min(b + tail, float(t[-1]))
+        seg = (t >= a) & (t <= w1)
+        amps = np.zeros(0)
+        if ok and by == "peak":
+            tc, amps = amplitude_track(t[seg], tip[seg], freqs, a)
+        if ok and np.any(np.isfinite(amps)):
+            k = int(np.nanargmax(amps))
+            half = fit_window(freqs) / 2
+            w0, w1 = float(tc[k] - half), float(tc[k] + half)
+            row["true_um"] = float(amps[k])
+        elif ok and seg.any():  # a moving frequency (or too short a stretch to fit): the stroke
+            by = "stroke"
+            row["true_um"] = 0.5 * float(np.ptp(tip[seg]))
+    row["judged"] = {"by": by, "from_s": w0, "to_s": w1, "active_s": [span["on"] / fs, span["off"] / fs]}
+    return w0, w1
 
 
 def _control(rig, rows) -> None:
@@ -219,21 +280,24 @@ def _felt(row, contact: bool) -> None:
         row["felt"] = row["true_um"] >= row["threshold_um"]
 
 
-def _estimate(row, reader, ch, n_blocks, period, freqs, target_m, since: int = 0) -> None:
-    """The observer's amplitude (median of its per-block estimate over the analysis window)
-    into ``row``, with its error against the truth where a simulation knows it and, on
-    hardware, the error against the target from the estimate."""
+def _estimate(row, reader, ch, n_blocks, period, freqs, target_m, since: int = 0, blocks=None,
+              peak: bool = False) -> None:
+    """The observer's amplitude (median of its per-block estimate over the analysis window, or
+    over ``blocks`` ``(first, end)``: a played signal's judged window; their highest with
+    ``peak``) into ``row``, with its
+    error against the truth where a simulation knows it and, on hardware, the error against
+    the target from the estimate."""
     if not n_blocks or "estimated_tip_um" not in reader.units:
         return
     est = reader.signal("estimated_um", ch)[:n_blocks]
     m = max(1, int(round(analysis_window(n_blocks * period, freqs) / period)))
     if since:  # after an event: only the last segment's second half (what it settled to)
         m = max(1, min(m, (n_blocks - since) // 2))
-    seg = est[-m:]
+    seg = est[-m:] if blocks is None else est[max(0, blocks[0]):max(blocks[0] + 1, blocks[1])]
     seg = seg[np.isfinite(seg)]
     if not seg.size:
         return
-    row["estimated_um"] = float(np.median(seg))
+    row["estimated_um"] = float(np.max(seg) if peak else np.median(seg))
     if row["true_um"]:
         row["estimate_error_pct"] = 100.0 * (row["estimated_um"] / row["true_um"] - 1.0)
     elif target_m and math.isfinite(target_m):
@@ -269,6 +333,12 @@ def print_table(summary: dict) -> None:
         print(f"{r['name']:<12}{(r['receptor'] or '-'):<10}{_fmt(r['freq_hz'], '9.1f')}{r['v_peak']:8.1f}"
               f"{_fmt(r['true_um'], '10.3g')}{_fmt(r['threshold_um'], '10.3g')}{_fmt(r['target_um'], '10.3g')}"
               f"{_fmt(r['error_pct'], '9.1f')}{_fmt(r['settle_ms'], '10.0f')}  {felt}{note}")
+    for r in summary["channels"]:
+        j = r.get("judged")
+        if j:  # a played signal: say what its row was judged over (docs/stimulus.md)
+            a, b = j["active_s"]
+            print(f"{r['name']}: judged over {j['from_s']:.3f}-{j['to_s']:.3f} s ({JUDGED[j['by']]}; "
+                  f"the signal plays {a:.3f}-{b:.3f} s)")
 
 
 def limited_by(limiter, ch: int) -> list[str]:
@@ -396,6 +466,9 @@ def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> N
             bx.set_ylabel("tip um")
             if i == 0:
                 bx.legend(fontsize=7, loc="upper right")
+        j = r.get("judged")
+        if j and (r.get("controlled") or has_tip):  # a played signal: the window its row was judged over
+            bx.axvspan(j["from_s"], j["to_s"], color="C2", alpha=0.2, lw=0)
         for ev in summary.get("events", ()):  # when the finger or a target changed
             for a in fig.axes[-2:] if (r.get("controlled") or has_tip) else fig.axes[-1:]:
                 a.axvline(ev["at"], color="C3", lw=0.8, alpha=0.7)
