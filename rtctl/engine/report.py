@@ -69,10 +69,10 @@ def settle_time(x, t, freqs, start, final) -> float | None:
     edges = np.arange(start, t[-1] - w, w / 2)
     if edges.size == 0:
         return None
-    amps = []
-    for e in edges:
-        m = (t >= e) & (t < e + w)
-        amps.append(fit_amplitudes(x[m], t[m], freqs).sum())
+    # t is sorted: the samples with e <= t < e + w are one slice (a mask per window made the
+    # report of a long run cost more than the run)
+    lo, hi = np.searchsorted(t, edges, "left"), np.searchsorted(t, edges + w, "left")
+    amps = [fit_amplitudes(x[i:j], t[i:j], freqs).sum() for i, j in zip(lo, hi)]
     ok = np.abs(np.asarray(amps) / final - 1.0) <= SETTLE_BAND
     bad = np.flatnonzero(~ok)
     if bad.size == 0:  # settled in the first window: its end is the best bound we can give
@@ -385,10 +385,10 @@ def amplitude_track(t, x, freqs, start: float = 0.0):
     w = fit_window(freqs)
     edges = np.arange(start, t[-1] - w, w / 2)
     amps = np.full(edges.size, np.nan)
-    for k, e in enumerate(edges):
-        m = (t >= e) & (t < e + w)
-        if np.all(np.isfinite(x[m])):
-            amps[k] = fit_amplitudes(x[m], t[m], freqs).sum()
+    lo, hi = np.searchsorted(t, edges, "left"), np.searchsorted(t, edges + w, "left")  # t sorted
+    for k, (i, j) in enumerate(zip(lo, hi)):
+        if np.all(np.isfinite(x[i:j])):
+            amps[k] = fit_amplitudes(x[i:j], t[i:j], freqs).sum()
     return edges + w / 2, amps
 
 
