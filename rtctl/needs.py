@@ -112,6 +112,8 @@ def unavailable_message(component: str, why: str) -> str:
         "selfsense": "use control.mode = 'open' for now",
         "dsp.lockin": "use control.mode = 'open' for now",
         "render": "use stimulus.kind = 'tones' for now",
+        # a recorded run is replayed by a command, against the simulated plant or offline
+        "io.replay": "replay a recorded trace with `rtctl replay TRACE [--mode resim|plant|observer]`",
     }
     fix = fixes.get(component, "use io.backend = 'sim' with a bimorph actuator for now"
                     if component.startswith(("io.", "plant.")) else "")

@@ -26,7 +26,7 @@ def run_cli(capsys, *args):
         (["model", "no-such-scene"], ["no-such-scene", "no such scene"]),
         (["run", "line-bimorph-5", "--set", "control.mode=closed", "--set", "stimulus.kind=shape"],
          ["control.mode = closed", "stimulus.kind = 'tones'", "'shape'"]),
-        (["run", "line-bimorph-5", "--set", "io.backend=replay"], ["io.backend = 'replay'", "not have yet"]),
+        (["run", "line-bimorph-5", "--set", "io.backend=replay"], ["io.backend = 'replay'", "not have yet", "rtctl replay TRACE"]),
         (["run", "dot-4x4", "--set", "io.backend=serial"], ["io.port", "rtctl emulate serial"]),
         (["run", "line-bimorph-5", "--set", "stimulus.kind=image", "--set", "stimulus.method=roi",
           "--set", "stimulus.image=/no/such.png"], ["/no/such.png", "no such file"]),
