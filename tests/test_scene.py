@@ -54,7 +54,7 @@ margin_db = 6.0       # target = threshold * 10^(margin_db/20)
 """
 
 
-def test_architecture_example_validates_with_its_values():
+def test_the_scene_format_example_validates_with_its_values():
     s = scene.loads(CONTRACT)
     a = s.group("lateral")
     assert (s.timing.fs, s.timing.block, s.timing.duration) == (48000.0, 32, 2.0)

@@ -1,4 +1,4 @@
-"""Transfer matrices vs finite elements: two independent models of one beam (issue item 2)."""
+"""Transfer matrices vs finite elements: two independent models of one beam (docs/selfsense.md)."""
 
 import math
 
@@ -50,7 +50,7 @@ def test_loaded_natural_frequencies_agree(support):
                                rtol=1e-3)
 
 
-# Issue target: admittance within 1 % below the third mode. Measured with the modal damping of
+# Target: admittance within 1 % below the third mode. Measured with the modal damping of
 # TMMBeam.response (<= 1e-5 admittance, <= 4.2e-4 motional current, tip <= 0.3 % of the static
 # deflection); tolerances set a decade above.
 @pytest.mark.parametrize("support", list(SUPPORTS))

@@ -1,4 +1,4 @@
-"""Real-time observer: kernel vs naive twin, and the issue's accuracy targets on the FE plant."""
+"""Real-time observer: kernel vs naive twin, and the accuracy targets (docs/selfsense.md) on the FE plant."""
 
 import math
 
@@ -118,7 +118,7 @@ CASES = [([10.0], 20.0), ([250.0], 20.0), ([1000.0], 20.0), ([245.0, 255.0], 10.
 @pytest.mark.parametrize("load", ["50g", "2g", "none"])
 @pytest.mark.parametrize("freqs,volts", CASES, ids=["10Hz", "250Hz", "1kHz", "beat250", "beat1k"])
 def test_observer_on_fe_plant_60db(freqs, volts, load):
-    """Issue targets at 60 dB SNR: amplitude within 1 %, phase within 1 degree, tip force within
+    """Targets at 60 dB SNR: amplitude within 1 %, phase within 1 degree, tip force within
     5 % (none: 5 % of k_beam x). The truth plant keeps every mode up to 5 fs (8: the images of
     the DAC staircase at 1-4 fs sit beside modes 5-8, see test_image_model_*), and starts in
     its steady state. Measured worst: amplitude 0.07 %, phase 0.02 deg, force 0.5 %
