@@ -22,7 +22,6 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  GHAT,    # tip per volt the last fresh estimate showed, m/V (0: none yet)
  REF,     # the mean of the last complete stretch of fresh estimates, m (0: none yet)
  RUN,     # fresh estimates in the present stretch
- RING,    # blocks the plant rings after a new command (its slowest loaded mode's time constant)
  HOLD,    # fresh estimates per stretch
  SUM,     # sum of the present stretch's estimates, m
  TRIES,   # fresh estimates since the last correction or the last on-target stretch
@@ -32,8 +31,8 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  RSUM,    # sum of the present stretch's tip per volt of each window (tip over the drive's lock-in)
  RRUN,    # windows in it
  RREF,    # the mean of the stretch before, m/V (0: none yet)
- ) = range(25)
-N_STATE = 25
+ ) = range(24)
+N_STATE = 24
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1

@@ -54,7 +54,6 @@ from ._kernels import (
     N_TARGET,
     OBS_CH,
     OBS_SLOT,
-    RING,
     TARGET,
     WARM,
 )
@@ -145,7 +144,6 @@ class AmplitudeController:
         self.state[AMAX] = self._amax
         self.state[GAIN] = self.gain
         self.state[WARM] = self.warm
-        self.state[RING] = self.ring
         self.state[HOLD] = self.hold
         self.target[TARGET] = self.targets0
         self.target[ENABLE] = 0.0
