@@ -238,6 +238,14 @@ class Stimulus:
         if self.render is not None:
             self.render.apply(k)
 
+    def busy_blocks(self):
+        """The blocks at which :meth:`apply` has work, or None when that can be any block (a
+        rendered stimulus)."""
+        if self.render is not None:
+            return None
+        return (set(self._schedule) | set(self._sig_schedule) | set(self._target_schedule)
+                | set(self._pulse_schedule))
+
     def position(self) -> tuple:
         """Where the stimulus is between blocks, outside its arrays: the rendered stimulus' frame
         shown and path update (empty for tones, whose schedule is a function of the block)."""

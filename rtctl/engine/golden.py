@@ -59,8 +59,8 @@ def tolerance(name: str) -> float:
 
 
 #: Summary fields that are timing, not behaviour.
-TIMING = ("realtime_factor", "block_time_us", "build_s", "deadline_misses", "late_wakeups", "overruns",
-          "trace_dropped", "block_function", "numba_cache", "io")
+TIMING = ("realtime_factor", "cpu_realtime_factor", "block_time_us", "build_s", "deadline_misses", "late_wakeups",
+          "overruns", "trace_dropped", "block_function", "numba_cache", "io")
 
 DEFAULT_DIR = Path(__file__).resolve().parents[2] / "tests" / "golden"
 

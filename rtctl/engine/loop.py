@@ -15,6 +15,7 @@ the record and counts it. A simulation run as fast as it goes waits for room ins
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ from .._codegen import fence
 from .._numba import kernel
 from ..trace import FLUSH_S
 from . import pace, realtime
+from .chunk import FAULT, ROOM, BlockRuns
 from .pace import settle
 from .ring import DROPPED, READ, WRITE, Drain, TraceRing, published, push, release, slots_for
 
@@ -67,6 +69,7 @@ class LoopResult:
     overruns: int = 0
     dropped: int = 0
     os: dict = field(default_factory=dict)
+    cpu: float = 0.0  # CPU time of the loop's thread over the run's blocks, s
 
 
 def _compile() -> None:
@@ -158,6 +161,11 @@ class Loop:
             slots = slots_for(writer.dtype.itemsize, rig.fs, rig.block, strict)
             self.ring = TraceRing(writer.dtype, sources or [], slots, late)
         _compile()
+        # runs of blocks in one compiled call, where no block needs Python (rtctl.engine.chunk)
+        self.runs = None
+        if BlockRuns.usable(rig) and not self.python_record and os.environ.get("RTCTL_BLOCK_RUNS", "1") != "0":
+            self.runs = BlockRuns(rig, self.period_ns, paced, strict, self.ring.args if self.ring is not None else None)
+            self.runs.compile()
 
     def run(self, n_blocks: int, times: np.ndarray, lates: np.ndarray, missed: np.ndarray, faults: list) -> LoopResult:
         rig, paced, period_ns = self.rig, self.paced, self.period_ns
@@ -179,12 +187,30 @@ class Loop:
         status_seen, k, run_blocks, interrupted = 0, 0, n_blocks, False
         wait, mark, strict = pace.wait, pace.mark, self.strict
         advance, apply_schedule = rig.advance, rig.apply_schedule
+        runs = self.runs
+        cpu0 = time.thread_time()
         try:
             apply_schedule(0)  # before the clock starts: block 0 starts with parameters to publish
             pace.start(st)
-            while k < n_blocks:
-                if k:
+            scheduled = 0  # the last block whose schedule was applied
+            while runs is not None and k < n_blocks:
+                if k > scheduled:
                     apply_schedule(k)
+                    scheduled = k
+                k, seen, status, why = runs(k, min(n_blocks, rig.next_busy(k)), st, times, lates, missed)
+                status_seen |= seen
+                if why == FAULT:
+                    faults.append(fault_message(rig, k, status, rig.block / rig.fs))
+                    run_blocks = k
+                    break
+                if why == ROOM:
+                    self._room()
+                    if not self.drain.is_alive():  # its error is raised after the run; go on dropping
+                        runs = None
+            while runs is None and k < n_blocks:
+                if k > scheduled:
+                    apply_schedule(k)
+                    scheduled = k
                 if paced:
                     while wait(st, k, period_ns):
                         pass
@@ -211,6 +237,7 @@ class Loop:
             run_blocks = k
         finally:
             wall = (pace.now_ns(st) - st[pace.START]) * 1e-9 if st[pace.START] else 0.0
+            cpu = time.thread_time() - cpu0
             try:
                 k = self._fade(st, k, times, lates, missed, requested=not faults, faults=faults)
             finally:
@@ -226,7 +253,7 @@ class Loop:
             raise self.drain.error
         return LoopResult(run_blocks, status_seen, interrupted, wall, int(st[pace.LATE_WAKEUPS]),
                           int(st[pace.OVERRUNS]), self.ring.dropped if self.ring is not None else 0,
-                          session.summary())
+                          session.summary(), cpu)
 
     def _fade(self, st, k, times, lates, missed, requested: bool, faults=None) -> int:
         """Whatever ended the run, fade every output to zero, paced like the run, recording the
@@ -268,7 +295,34 @@ class Loop:
             if lim.done:
                 if tail <= 0:
                     return k
-                tail -= 1
+                if self.runs is None:
+                    tail -= 1
+                    continue
+                # the outputs are at 0 V: the settle tail needs nothing from Python, block by block
+                k, status, tail = self._tail(st, k, tail, times, lates, missed, faults)
+                if tail <= 0 and lim.done:
+                    return k
+
+    def _tail(self, st, k, tail, times, lates, missed, faults) -> tuple:
+        """The settle tail's ``tail`` blocks in compiled runs; returns ``(next block, last status,
+        blocks of the tail left)``: none, or those after a fault (whose quick fade the caller runs
+        from Python, as any fault's, ending the run)."""
+        end = k + tail
+        status = 0
+        while k < end:
+            k, _, status, why = self.runs(k, end, st, times, lates, missed)
+            if why == FAULT:
+                if self.rig.limiter.smooth_stop:
+                    self.rig.limiter.shutdown(self.rig.block)
+                    if faults is not None:
+                        faults.append(fault_message(self.rig, k, status, self.rig.block / self.rig.fs))
+                return k, status, 0
+            if why == ROOM:
+                self._room()
+                if not self.drain.is_alive():
+                    self.runs = None
+                    return k, status, end - k
+        return k, status, 0
 
     def _room(self) -> None:
         """Wait until the ring has a free slot (runs that are not real time only)."""

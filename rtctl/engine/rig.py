@@ -112,6 +112,7 @@ class Rig:
             for ev in self.events:
                 self._events_at.setdefault(ev.block, []).append(ev)
         self.stages = self._stages()
+        self._busy = None  # next_busy's sorted blocks, found on first use
         self.blocks = 0  # blocks the block function has run since the last reset
         self._compile()
         from .state import scene_digest, state_arrays
@@ -391,6 +392,31 @@ class Rig:
             self.device.reset()
 
     # --- per block ----------------------------------------------------------------------------
+
+    @property
+    def block_function(self):
+        """The composed block function (:class:`rtctl.engine.compose.BlockFunction`), or None
+        when the stages run one by one from Python."""
+        return self._block
+
+    @property
+    def device_in_block(self) -> bool:
+        """Whether the block function holds the device's read and write (the simulated device)."""
+        return self._device_in_block
+
+    def next_busy(self, k: int) -> int:
+        """The first block after ``k`` at which :meth:`apply_schedule` may have work (a large
+        number when none will): the blocks between need nothing from Python."""
+        if self._busy is None:
+            busy = self.stimulus.busy_blocks()
+            if busy is not None:
+                busy = np.array(sorted(set(busy) | set(self._events_at)), dtype=np.int64)
+            self._busy = (busy,)
+        busy = self._busy[0]
+        if busy is None:
+            return k + 1
+        i = int(np.searchsorted(busy, k, side="right"))
+        return int(busy[i]) if i < busy.size else 1 << 62
 
     def apply_schedule(self, k: int) -> None:
         """Hand the parameter changes due at block ``k`` to the block function (it applies them,

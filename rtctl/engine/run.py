@@ -173,7 +173,10 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         res = loop.run(n_blocks, times, lates, missed, faults)
         run_blocks, status_seen, interrupted, wall = res.blocks, res.status_seen, res.interrupted, res.wall
         misses = res.late_wakeups + res.overruns
-        timing = {"late_wakeups": res.late_wakeups, "overruns": res.overruns, "trace_dropped": res.dropped}
+        # on a machine shared with other processes the wall clock measures them too
+        cpu_rtf = run_blocks * block / fs / res.cpu if res.cpu > 0 else math.inf
+        timing = {"cpu_realtime_factor": cpu_rtf, "late_wakeups": res.late_wakeups, "overruns": res.overruns,
+                  "trace_dropped": res.dropped}
         if paced:
             timing.update(wake_stats(lates[:run_blocks], missed[:run_blocks]))
         if res.os:
