@@ -184,6 +184,14 @@ def _parse_toml(text: str, origin: str) -> dict:
 
 #: a one-line TOML string, basic or literal: the dots of a long text in one do not count
 _QUOTED = re.compile(r'"(?:[^"\\]|\\.)*"|\'[^\']*\'')
+#: a float literal standing alone (``1.5``, ``-2.0e-3``), not a part of a dotted key of digits
+#: (``1.2.3``): the decimal points of a long array of numbers are no nesting
+_FLOAT = re.compile(r"(?<![\w.])[+-]?\d[\d_]*\.\d[\d_]*(?:[eE][+-]?\d+)?(?![\w.])")
+
+
+def _key_dots(text: str) -> int:
+    """The dots of ``text`` outside strings and float literals: those that can nest keys."""
+    return _FLOAT.sub("", _QUOTED.sub("", text)).count(".")
 
 
 def _check_dots(text: str, origin: str) -> None:
@@ -192,9 +200,9 @@ def _check_dots(text: str, origin: str) -> None:
     if text.count(".") <= MAX_LINE_DOTS:
         return
     for n, line in enumerate(text.splitlines(), 1):
-        if line.count(".") > MAX_LINE_DOTS and _QUOTED.sub("", line).count(".") > MAX_LINE_DOTS:
-            raise SceneError(f"{origin}: line {n} has more than {MAX_LINE_DOTS} dots outside strings; no scene "
-                             "key is nested that deep")
+        if line.count(".") > MAX_LINE_DOTS and _key_dots(line) > MAX_LINE_DOTS:
+            raise SceneError(f"{origin}: line {n} has more than {MAX_LINE_DOTS} dots outside strings and numbers; "
+                             "no scene key is nested that deep")
 
 
 def _max_digits() -> int:
@@ -206,7 +214,7 @@ def _max_digits() -> int:
 
 def parse_value(text: str) -> Any:
     """A TOML literal (``1e-3``, ``[1, 2]``, ``true``, ``"x"``, ``{k = 1}``), else the bare string."""
-    if text.count(".") > MAX_LINE_DOTS and _QUOTED.sub("", text).count(".") > MAX_LINE_DOTS:  # see _check_dots
+    if text.count(".") > MAX_LINE_DOTS and _key_dots(text) > MAX_LINE_DOTS:  # see _check_dots
         return text
     try:
         doc = tomllib.loads(f"v = {text}")

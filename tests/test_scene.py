@@ -171,3 +171,19 @@ def test_docs_scene_md_is_generated_from_the_schema():
 def test_every_schema_key_is_documented_with_a_doc_string():
     for path, spec in schema._walk(schema.SCENE, ""):
         assert spec.doc, path
+
+
+def test_long_arrays_of_numbers_are_values_not_deep_keys(tmp_path):
+    """The decimal points of many numbers are no nesting: 300 tones with float frequencies, as
+    ``--set`` and as one line of a scene file, parse; a dotted key of 300 parts (letters or
+    digits) is still refused before parsing (its parse time grows with the square of its depth)."""
+    tones = ", ".join(f"{{channel = 0, freq = {40.5 + i * 0.25:.3f}, voltage = 1.5}}" for i in range(300))
+    assert scene.parse_value(f"[{tones}]")[299]["freq"] == 40.5 + 299 * 0.25
+    f = tmp_path / "many.toml"
+    f.write_text(scene.resolve("line-bimorph-5").read_text()
+                 + f"\n[extra]\nvalues = [{', '.join(f'{i}.5' for i in range(400))}]\n")
+    with pytest.raises(SceneError) as e:  # parsed, then refused for its unknown key, not for its dots
+        scene.load(str(f))
+    assert "extra" in str(e.value) and "dots" not in str(e.value)
+    for deep in (".".join(["a"] * 300), ".".join(["1"] * 300), ".".join(["1.5"] * 150)):
+        assert scene.parse_value(f"{{{deep} = 1}}") == f"{{{deep} = 1}}"  # text, never parsed
