@@ -166,23 +166,29 @@ def test_image_model_matches_a_converged_plant(f, load):
 
 
 def test_short_windows_by_hand():
-    """Whole periods on the sample grid (fs / f's reduced numerator, least common multiple over a
-    channel's tones), or one period of the closest spacing by least squares where that is shorter;
-    the hop the largest divisor of the block dividing them all."""
+    """On the block grid unless that is more than twice the shortest window without leakage:
+    whole periods on the sample grid (fs / f's reduced numerator, least common multiple over a
+    channel's tones), or one period of the closest spacing by least squares; the hop the largest
+    divisor of the block dividing them all."""
     from rtctl.selfsense.rt import short_windows
 
     w, lsq, hop = short_windows([[2.0], [10.0], [40.0], [120.0], [250.0]], FS, BLOCK)
-    # 48000 / 40 = 1200, 48000 / 120 = 400 (on the block grid: 2400 and 800)
-    assert w.tolist() == [24000, 4800, 1200, 400, 192] and not lsq.any() and hop == 16
+    # 48000 / 40 = 1200 and 48000 / 120 = 400: the block grid's 2400 and 800 are twice that, kept
+    assert w.tolist() == [24000, 4800, 2400, 800, 192] and not lsq.any() and hop == 32
+    w, _, hop = short_windows([[40.0], [120.0]], FS, BLOCK, shorten=1)
+    assert w.tolist() == [1200, 400] and hop == 16
     pairs = [[80.0, 0.0], [235.0, 265.0], [245.0, 255.0], [240.0, 270.0], [35.0, 45.0], [1000.0, 0.0]]
     w, lsq, hop = short_windows(pairs, FS, BLOCK)
-    # 80 Hz: 600; 235 + 265: one 30 Hz beat (1600) against 9600; 245 + 255: one 10 Hz beat (4800)
-    # against 9600; 240 + 270 Hz: whole periods of both are one beat already (1600); 35 + 45: 4800
-    # against 9600; 1 kHz: 48
+    # 80 Hz: 600 against 2400; 235 + 265: one 30 Hz beat (1600) against 9600; 245 + 255: one 10 Hz
+    # beat (4800) against 9600, kept; 240 + 270 Hz: whole periods of both are one beat (1600);
+    # 35 + 45: 4800 against 9600, kept; 1 kHz: 48 against 96, kept
+    assert w.tolist() == [600, 1600, 9600, 1600, 9600, 96]
+    assert lsq.tolist() == [False, True, False, False, False, False] and hop == 8
+    w, lsq, _ = short_windows(pairs, FS, BLOCK, shorten=1)
     assert w.tolist() == [600, 1600, 4800, 1600, 4800, 48]
-    assert lsq.tolist() == [False, True, True, False, True, False] and hop == 8
+    assert lsq.tolist() == [False, True, True, False, True, False]
     # too close for a window of one beat on the block grid to be well conditioned: whole periods
-    w, lsq, _ = short_windows([[249.0, 251.0]], FS, BLOCK, max_cond=1.0)
+    w, lsq, _ = short_windows([[249.0, 251.0]], FS, BLOCK, max_cond=1.0, shorten=1)
     assert w.tolist() == [48000] and not lsq.any()  # 1 / gcd(249, 251 Hz) = 1 s
 
 

@@ -74,19 +74,26 @@ def _whole_periods(f, fs) -> int:
     return w
 
 
-def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND):
-    """Per channel, the shortest lock-in window over which its own tones are read without leakage
-    from one another, and the hop that lets every channel have it.
+#: :func:`short_windows` leaves a channel's window on the block grid unless the grid makes it more
+#: than this many times the shortest: a shorter window answers sooner but lets a ringing plant
+#: leak more into the estimate (120 Hz over 400 samples instead of 800: a lifted beam with half the
+#: damping settled 29 ms later after lift-off, for 4-12 ms gained elsewhere; bench/control_sweep.py)
+SHORTEN = 2
 
-    A channel's window is the fewest samples holding whole periods of all its tones (80 Hz: 600
-    samples at 48 kHz, where multiples of a 32-sample block need 2400), unless its tones are
-    read by least squares over a shorter one: a multiple of ``block`` of at least one period of
-    their closest spacing and of the lowest tone (a 235 + 265 Hz pair: 1600 samples, one beat
-    period, against 9600 for whole periods of both), taken when its condition number (as
-    :class:`~rtctl.dsp.lockin.LockIn` reports it) is within ``max_cond``. The hop, shared by the
-    channels' lock-in, is the largest divisor of ``block`` dividing every window, so that each
-    window still ends with the block. Where whole periods take longer than ``max_seconds``, the
-    channel falls back to :func:`tone_window` on the block grid.
+
+def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shorten=SHORTEN):
+    """Per channel, a lock-in window over which its own tones are read without leakage from one
+    another, not forced long by the block grid, and the hop that lets every channel have it.
+
+    A channel's window is :func:`tone_window` on the block grid (whole periods of its tones, a
+    multiple of ``block``), unless that is more than ``shorten`` times the shortest window without
+    leakage, which is then taken: either the fewest samples holding whole periods of all its tones
+    (80 Hz: 600 samples at 48 kHz, where multiples of a 32-sample block need 2400), or, read by
+    least squares, a multiple of ``block`` of at least one period of their closest spacing and of
+    the lowest tone (a 235 + 265 Hz pair: 1600 samples, one beat period, against 9600 for whole
+    periods of both), if its condition number (as :class:`~rtctl.dsp.lockin.LockIn` reports it)
+    is within ``max_cond``. The hop, shared by the channels' lock-ins, is the largest divisor of
+    ``block`` dividing every window, so that each window still ends with the block.
 
     Parameters
     ----------
@@ -95,7 +102,10 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND):
     fs : float
     block : int
     max_seconds : float
+        As for :func:`tone_window`.
     max_cond : float
+    shorten : float
+        See :data:`SHORTEN`.
 
     Returns
     -------
@@ -105,9 +115,9 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND):
 
     Examples
     --------
-    >>> w, lsq, hop = short_windows([[80.0, 0.0], [235.0, 265.0], [250.0, 0.0]], 48000.0, 32)
+    >>> w, lsq, hop = short_windows([[80.0, 0.0], [235.0, 265.0], [120.0, 0.0]], 48000.0, 32)
     >>> w.tolist(), lsq.tolist(), hop
-    ([600, 1600, 192], [False, True, False], 8)
+    ([600, 1600, 800], [False, True, False], 8)
     """
     f = np.atleast_2d(np.asarray(freqs, dtype=float))
     block = int(block)
@@ -115,20 +125,20 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND):
     lstsq = np.zeros(f.shape[0], dtype=bool)
     for c, row in enumerate(f):
         row = np.sort(row[np.isfinite(row) & (row > 0)])
+        w0 = tone_window(row, fs, block, max_seconds)
+        windows[c] = w0
         if row.size == 0:
-            windows[c] = block
             continue
         w = _whole_periods(row, fs)
-        if w > max_seconds * fs:
-            w = tone_window(row, fs, block, max_seconds)
-        if row.size > 1:
+        if row.size > 1 and np.diff(row).min() > 0:
             span = fs / min(float(np.diff(row).min()), float(row[0]))
             wl = block * math.ceil(span / block - 1e-9)
-            if wl < w and np.diff(row).min() > 0:
-                m = lsq_gram(row, wl, fs) / (0.5 * wl)
-                if np.linalg.cond(m) <= max_cond:
-                    w, lstsq[c] = wl, True
-        windows[c] = w
+            if wl < w and np.linalg.cond(lsq_gram(row, wl, fs) / (0.5 * wl)) <= max_cond:
+                w, lstsq[c] = wl, True
+        if w0 > shorten * w:
+            windows[c] = w
+        else:
+            lstsq[c] = False
     hop = math.gcd(block, *(int(x) for x in windows))
     return windows, lstsq, hop
 
