@@ -289,12 +289,14 @@ class Models:
         raise SceneError(f"actuator.{group.name}: the limiter needs the electrical load of a {t!r} "
                          "actuator, which this version cannot model yet")
 
-    def observer(self, group, freqs, fs: float, block: int, wave=None, window=None, hop=None, lstsq=False):
+    def observer(self, group, freqs, fs: float, block: int, wave=None, window=None, hop=None,
+                 lstsq=False):
         """The self-sensing observer of a bimorph group on ``freqs`` (Hz, ``(n_channels, width)``,
         0 for an unused slot): the transfer-matrix beam under the finger, the front end of the
         group's amplifier and sense chain; the rebuilt tip wave goes into ``wave``; ``window``,
         ``hop`` and ``lstsq`` as for :class:`~rtctl.selfsense.rt.Observer` (one window for all
-        channels or one per channel; default whole periods of every tone, hop one block). An ill-conditioned tone is refused (ModelError)."""
+        channels or one per channel; default whole periods of every tone, hop one block). An
+        ill-conditioned tone is refused (ModelError)."""
         from .selfsense.frontend import FrontEnd
         from .selfsense.rt import Observer
         from .selfsense.tmm import TMMBeam

@@ -151,7 +151,7 @@ def test_closed_loop_windows_off_the_block_grid():
         t = np.arange(n - w, n) / rig.fs
         a = np.stack([g(2 * np.pi * fk * t) for fk in f for g in (np.cos, lambda x: -np.sin(x))], axis=1)
 
-        def fit(x):
+        def fit(x, a=a, w=w):
             coef, *_ = np.linalg.lstsq(a, x[n - w:n], rcond=None)
             return coef[0::2] + 1j * coef[1::2]
 

@@ -187,6 +187,10 @@ def test_short_windows_by_hand():
     w, lsq, _ = short_windows(pairs, FS, BLOCK, shorten=1)
     assert w.tolist() == [600, 1600, 4800, 1600, 4800, 48]
     assert lsq.tolist() == [False, True, True, False, True, False]
+    # a tone whose one period (601 samples) would need a hop of 1: one period rounded up to the
+    # block by least squares instead (608 samples, 1.013 periods)
+    w, lsq, hop = short_windows([[48000.0 / 601, 0.0], [80.0, 0.0]], FS, BLOCK)
+    assert w.tolist() == [608, 600] and lsq.tolist() == [True, False] and hop == 8
     # too close for a window of one beat on the block grid to be well conditioned: whole periods
     w, lsq, _ = short_windows([[249.0, 251.0]], FS, BLOCK, max_cond=1.0, shorten=1)
     assert w.tolist() == [48000] and not lsq.any()  # 1 / gcd(249, 251 Hz) = 1 s
@@ -219,7 +223,7 @@ def test_least_squares_channels_match_numpy_lstsq():
         t = np.arange(n_total - w, n_total)
         a = np.stack([g(2 * np.pi * fk * t / FS) for fk in f for g in (np.cos, lambda x: -np.sin(x))], axis=1)
 
-        def fit(x):
+        def fit(x, a=a, w=w):
             coef, *_ = np.linalg.lstsq(a, x[-w:], rcond=None)
             return coef[0::2] + 1j * coef[1::2]
 

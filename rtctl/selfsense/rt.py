@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 import math
 from fractions import Fraction
+
+import numpy as np
 
 from rtctl.dsp.lockin import MAX_LSQ_COND, LockIn, lsq_gram
 from rtctl.errors import ModelError
@@ -79,6 +79,10 @@ def _whole_periods(f, fs) -> int:
 #: leak more into the estimate (120 Hz over 400 samples instead of 800: a lifted beam with half the
 #: damping settled 29 ms later after lift-off, for 4-12 ms gained elsewhere; bench/control_sweep.py)
 SHORTEN = 2
+#: nor does it make the lock-ins' hop shorter than this (each hop costs the ring update once more
+#: per block for every slot of the group): a window of whole periods that would need it is read by
+#: least squares on the block grid instead (48000 / 601 Hz: 608 samples, not 601 with a hop of 1)
+MIN_HOP = 8
 
 
 def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shorten=SHORTEN):
@@ -93,7 +97,9 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
     the lowest tone (a 235 + 265 Hz pair: 1600 samples, one beat period, against 9600 for whole
     periods of both), if its condition number (as :class:`~rtctl.dsp.lockin.LockIn` reports it)
     is within ``max_cond``. The hop, shared by the channels' lock-ins, is the largest divisor of
-    ``block`` dividing every window, so that each window still ends with the block.
+    ``block`` dividing every window, so that each window still ends with the block; a window of
+    whole periods that would need a hop under :data:`MIN_HOP` is not taken (least squares on the
+    block grid, over at least one period of the lowest tone, may be).
 
     Parameters
     ----------
@@ -130,8 +136,10 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
         if row.size == 0:
             continue
         w = _whole_periods(row, fs)
-        if row.size > 1 and np.diff(row).min() > 0:
-            span = fs / min(float(np.diff(row).min()), float(row[0]))
+        if math.gcd(block, w) < min(block, MIN_HOP):
+            w = w0  # too fine a hop: not shorter than the block grid's
+        if row.size == 1 or np.diff(row).min() > 0:
+            span = fs / min(float(np.diff(row).min()) if row.size > 1 else math.inf, float(row[0]))
             wl = block * math.ceil(span / block - 1e-9)
             if wl < w and np.linalg.cond(lsq_gram(row, wl, fs) / (0.5 * wl)) <= max_cond:
                 w, lstsq[c] = wl, True
