@@ -18,8 +18,9 @@ overshoot. A segment is judged only where the target is reachable: the device's 
 finger, times the tone's share of max_voltage. ``step`` is how far the event alone moves the
 amplitude at the drive held before it (what no loop can act on before it sees it).
 
-The beat pairs 40/10 and 250/30 Hz (35 + 45, 235 + 265 Hz) repeat every 200 ms, so the observer's
-window (whole periods of both tones) does; 255/30 Hz (240 + 270 Hz) repeats with its beat, 33 ms.
+The beat pairs 40/10 and 250/30 Hz (35 + 45, 235 + 265 Hz) repeat every 200 ms; the observer reads
+the first over whole periods of both tones (200 ms, twice its 100 ms beat) and the second over one
+beat period by least squares (33 ms); 255/30 Hz (240 + 270 Hz) repeats with its beat, 33 ms.
 
 Targets: the first eleven are half the least reach over the grid's devices and finger states
 (``--targets`` recomputes it), so they are reachable everywhere; the last three 80 % of the

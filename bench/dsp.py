@@ -58,9 +58,9 @@ def drive_pulse(state, pending, out, n_blocks):
 
 
 @njit(nogil=True)
-def drive_lockin(ref, pending, chan, acc, ring, x, out, n_blocks):
+def drive_lockin(ref, pending, chan, acc, ring, solve, x, out, n_blocks):
     for _ in range(n_blocks):
-        K.lockin_process(ref, pending, chan, acc, ring, x, out)
+        K.lockin_process(ref, pending, chan, acc, ring, solve, x, out)
 
 
 def best_time(fn, repeat=5):

@@ -289,16 +289,19 @@ class Models:
         raise SceneError(f"actuator.{group.name}: the limiter needs the electrical load of a {t!r} "
                          "actuator, which this version cannot model yet")
 
-    def observer(self, group, freqs, fs: float, block: int, wave=None, window=None):
+    def observer(self, group, freqs, fs: float, block: int, wave=None, window=None, hop=None,
+                 lstsq=False):
         """The self-sensing observer of a bimorph group on ``freqs`` (Hz, ``(n_channels, width)``,
         0 for an unused slot): the transfer-matrix beam under the finger, the front end of the
-        group's amplifier and sense chain; the rebuilt tip wave goes into ``wave``; ``window``
-        as for :class:`~rtctl.selfsense.rt.Observer` (one for all channels or one per channel;
-        default whole periods of every tone). An ill-conditioned tone is refused (ModelError)."""
+        group's amplifier and sense chain; the rebuilt tip wave goes into ``wave``; ``window``,
+        ``hop`` and ``lstsq`` as for :class:`~rtctl.selfsense.rt.Observer` (one window for all
+        channels or one per channel; default whole periods of every tone, hop one block). An
+        ill-conditioned tone is refused (ModelError)."""
         from .selfsense.frontend import FrontEnd
         from .selfsense.rt import Observer
         from .selfsense.tmm import TMMBeam
 
         front = FrontEnd(fs, group.amplifier.bandwidth, group.sense.aa_cutoff, group.sense.aa_order)
         return Observer(TMMBeam.from_fe(self.beam(group)), freqs, fs, block, front,
-                        window=window, image_load=self.finger(group), max_cond=OBSERVER_MAX_COND, wave=wave)
+                        window=window, image_load=self.finger(group), max_cond=OBSERVER_MAX_COND, wave=wave,
+                        hop=hop, lstsq=lstsq)

@@ -253,3 +253,83 @@ def test_beat_window_and_validation():
     with pytest.raises(ValueError, match=r"beat = 0.0 Hz"):
         beat_window(FS, 0.0)
     assert LockIn(1, [[250.0]], FS, 100).hop == 25
+
+
+# --- least squares over windows that are not whole periods ------------------------------------------
+
+def lstsq_fit_tones(xw, freqs, n_end):
+    """Independent reference: joint least-squares fit of ``sum_k A_k cos(theta_k + phi_k)`` to the
+    window ``xw`` ending at sample ``n_end`` (numpy ``lstsq``); returns ``A_k exp(i phi_k)``."""
+    n = np.arange(n_end - len(xw), n_end)
+    cols = []
+    for f in freqs:
+        theta = 2 * np.pi * np.array([naive_dsp.exact_cycles(f, FS, int(m)) for m in n])
+        cols += [np.cos(theta), -np.sin(theta)]
+    c, *_ = np.linalg.lstsq(np.stack(cols, axis=1), xw, rcond=None)
+    return c[0::2] + 1j * c[1::2]
+
+
+def test_lsq_gram_is_the_references_gram_matrix():
+    """The closed form against numpy's ``A^T A`` of the window's cosines and sines, turned to the
+    window's end (``theta_l = -w_l p`` at ``p`` samples before the next one)."""
+    from rtctl.dsp.lockin import lsq_gram
+
+    for freqs, w in (([235.0, 265.0], 1600), ([80.0], 608), ([35.0, 45.0, 250.0], 1000)):
+        p = np.arange(1, w + 1)
+        a = np.stack([g(2 * np.pi * f / FS * p) for f in freqs for g in (np.cos, np.sin)], axis=1)
+        np.testing.assert_allclose(lsq_gram(freqs, w, FS), a.T @ a, atol=1e-9 * w)
+    assert np.allclose(lsq_gram([235.0, 265.0], 9600, FS), 4800 * np.eye(4), atol=1e-8)  # whole periods
+
+
+@pytest.mark.parametrize("window", [1600, 1632, 2080, 1280])
+def test_least_squares_reads_a_pure_pair_exactly(window):
+    """235 + 265 Hz (whole periods of both: 9600 samples) over one beat period (1600) and windows
+    that are whole periods of neither tone nor of the beat: each tone read exactly (the closed
+    form), where the plain sums are off by the neighbour and the mirrors."""
+    x = tones(4800 + 7, [235.0, 265.0], [3.3, 1.2], [0.4, -2.1])
+    lock = LockIn(1, [[235.0, 265.0]], FS, window, hop=32, lstsq=True)
+    plain = LockIn(1, [[235.0, 265.0]], FS, window, hop=32)
+    n = (x.shape[1] // 32) * 32
+    feed(lock, x[:, :n], splits=range(0, n, 100))
+    feed(plain, x[:, :n])
+    want = np.array([3.3 * np.exp(0.4j), 1.2 * np.exp(-2.1j)])
+    np.testing.assert_allclose(lock.phasor[0], want, rtol=0, atol=1e-12 * 3.3)
+    np.testing.assert_allclose(lock.amplitude[0], [3.3, 1.2], rtol=1e-12)
+    np.testing.assert_allclose(lock.phase[0], [0.4, -2.1], atol=1e-12)
+    assert np.abs(plain.phasor[0] - want).max() > 1e-3
+    assert 1.0 <= lock.cond[0] <= 2.0 and np.isnan(plain.cond[0])
+
+
+def test_least_squares_against_numpy_lstsq_with_noise():
+    """Two tones, a third one (not in the fit) and noise: the joint fit of the same samples by
+    numpy's ``lstsq``, per row, each row over its own window; a plain row beside it unchanged."""
+    rng = np.random.default_rng(11)
+    n = 32 * 230
+    x0 = tones(n, [235.0, 265.0, 700.0], [2.0, 1.5, 0.3], [1.0, 0.2, 0.0])[0] + 0.05 * rng.standard_normal(n)
+    x1 = tones(n, [35.0, 45.0], [1.0, 0.7], [0.3, 2.0])[0] + 0.05 * rng.standard_normal(n)
+    x = np.stack([x0, x1, x1])
+    freqs = [[235.0, 265.0], [35.0, 45.0], [35.0, 45.0]]
+    lock = LockIn(3, freqs, FS, [1632, 4800, 4800], hop=32, lstsq=[True, True, False])
+    feed(lock, x, splits=range(0, n, 160))
+    for r, w in ((0, 1632), (1, 4800)):
+        np.testing.assert_allclose(lock.phasor[r], lstsq_fit_tones(x[r, -w:], freqs[r], n), rtol=0, atol=1e-11)
+    plain = 2.0 / 4800 * np.array([np.sum(x1[-4800:] * np.exp(-2j * np.pi * f * np.arange(n - 4800, n) / FS))
+                                   for f in (35.0, 45.0)])
+    np.testing.assert_allclose(lock.phasor[2], plain, rtol=1e-9)
+
+
+def test_least_squares_single_tone_any_window():
+    """One tone over 608 samples (80 Hz: 1.013 periods): the mirror removed too."""
+    x = tones(3200, [80.0], [2.0], [0.7])
+    lock = LockIn(1, [[80.0, 0.0]], FS, 608, hop=32, lstsq=True)
+    feed(lock, x)
+    assert lock.phasor[0, 0] == pytest.approx(2.0 * np.exp(0.7j), abs=1e-12)
+    assert np.isnan(lock.phasor[0, 1])
+
+
+def test_least_squares_refuses_an_ill_conditioned_row():
+    with pytest.raises(ValueError, match=r"row 0: least squares over 1600 samples .* ill-conditioned \(condition"):
+        LockIn(1, [[249.0, 251.0]], FS, 1600, lstsq=True)  # 2 Hz apart: a twelfth of their beat
+    lock = LockIn(1, [[235.0, 265.0]], FS, 1600, lstsq=True)
+    with pytest.raises(ValueError, match=r"set_freq: least-squares rows"):
+        lock.set_freq([[240.0, 270.0]])

@@ -118,3 +118,43 @@ def test_closed_loop_each_channel_observes_over_its_own_tones():
         assert seen.stage is rig.observer_stages[0][1] and np.shares_memory(seen.observer.est, obs.est)
         assert np.array_equal(seen.observer.est, obs.est[c:c + 1]) and seen.observer.window == obs.windows[c]
 
+
+
+def test_closed_loop_windows_off_the_block_grid():
+    """Closed loop with 80 Hz (one period: 600 samples, where whole blocks of 32 need 2400) and
+    235 + 265 Hz (one 30 Hz beat: 1600, where whole periods of both need 9600): the lock-ins hop
+    every 8 samples, the pair is read by least squares, and each estimate is ``H`` applied to the
+    joint least-squares phasors (numpy ``lstsq``) of the drive and currents the loop really had
+    over the channel's own window; the controllers wait whole blocks for them (19 and 50)."""
+    from rtctl.engine.rig import build
+
+    tones = "[{channel = 0, freq = 80, voltage = 1.0, target_um = 6.0}, " \
+            "{channel = 1, freq = 250, beat = 30, voltage = 1.0, target_um = 6.6}]"
+    rig = build(scene.load("line-bimorph-5-closed", ["actuator.lateral.grid=[1, 2]", f"stimulus.tones={tones}",
+                                                     "events=[]"]))
+    obs = rig.observer_stages[0][1].observer
+    assert obs.windows.tolist() == [600, 1600] and obs.lstsq.tolist() == [False, True] and obs.hop == 8
+    assert obs.lock_u.cond[1] == pytest.approx(1.0686, abs=1e-4)
+    assert [ctl.warm for _, _, ctl in rig.controllers] == [rig.latency + 19 + 1, rig.latency + 50 + 1]
+    n_blocks, B, L, m = 300, rig.block, rig.latency, obs.n_seg
+    drive, sensed = np.zeros((2, (n_blocks + L) * B)), np.zeros((2 * m, n_blocks * B))
+    for k in range(n_blocks):
+        rig.apply_schedule(k)
+        rig.advance()
+        drive[:, (k + L) * B:(k + L + 1) * B] = rig.out
+        sensed[:, k * B:(k + 1) * B] = rig.sensed
+    n = n_blocks * B
+    H = obs.H[..., 0] + 1j * obs.H[..., 1]
+    got = obs.est[..., 0] + 1j * obs.est[..., 1]
+    for c, w in enumerate(obs.windows):
+        f = obs.freqs[c][obs.freqs[c] > 0]
+        t = np.arange(n - w, n) / rig.fs
+        a = np.stack([g(2 * np.pi * fk * t) for fk in f for g in (np.cos, lambda x: -np.sin(x))], axis=1)
+
+        def fit(x, a=a, w=w):
+            coef, *_ = np.linalg.lstsq(a, x[n - w:n], rcond=None)
+            return coef[0::2] + 1j * coef[1::2]
+
+        ph = np.stack([fit(drive[c])] + [fit(sensed[c * m + j]) for j in range(m)], axis=-1)
+        want = np.einsum("kej,kj->ke", H[c, :f.size], ph)
+        np.testing.assert_allclose(got[c, :f.size], want, rtol=1e-7, atol=1e-9 * np.abs(want).max())

@@ -96,11 +96,15 @@ def test_window_per_channel_matches_naive_twin_per_channel():
     assert np.array_equal(view.scale, 2.0 / windows[2:4])
 
 
-def test_window_must_be_whole_blocks():
+def test_window_must_be_whole_hops():
     from rtctl.errors import ModelError
 
-    with pytest.raises(ModelError, match=r"window\[1\] = 100 must be a multiple of block = 32"):
+    with pytest.raises(ModelError, match=r"window\[1\] = 100 must be a multiple of hop = 32"):
         Observer(TMMBeam.from_fe(fe_model()), [[250.0], [500.0]], FS, BLOCK, window=[192, 100])
+    with pytest.raises(ModelError, match=r"window\[1\] = 100 must be a multiple of hop = 8"):
+        Observer(TMMBeam.from_fe(fe_model()), [[250.0], [500.0]], FS, BLOCK, window=[192, 100], hop=8)
+    with pytest.raises(ModelError, match=r"hop = 12 must divide block = 32"):
+        Observer(TMMBeam.from_fe(fe_model()), [[250.0]], FS, BLOCK, window=192, hop=12)
 
 
 def test_nonfinite_reading_is_flagged():
@@ -159,3 +163,71 @@ def test_image_model_matches_a_converged_plant(f, load):
         miss[n_modes] = np.abs(sensed - line0 - img).max() / np.abs(motional).min()
     assert miss[8] < 1e-3
     assert miss[4] > 3e-3
+
+
+def test_short_windows_by_hand():
+    """On the block grid unless that is more than twice the shortest window without leakage:
+    whole periods on the sample grid (fs / f's reduced numerator, least common multiple over a
+    channel's tones), or one period of the closest spacing by least squares; the hop the largest
+    divisor of the block dividing them all."""
+    from rtctl.selfsense.rt import short_windows
+
+    w, lsq, hop = short_windows([[2.0], [10.0], [40.0], [120.0], [250.0]], FS, BLOCK)
+    # 48000 / 40 = 1200 and 48000 / 120 = 400: the block grid's 2400 and 800 are twice that, kept
+    assert w.tolist() == [24000, 4800, 2400, 800, 192] and not lsq.any() and hop == 32
+    w, _, hop = short_windows([[40.0], [120.0]], FS, BLOCK, shorten=1)
+    assert w.tolist() == [1200, 400] and hop == 16
+    pairs = [[80.0, 0.0], [235.0, 265.0], [245.0, 255.0], [240.0, 270.0], [35.0, 45.0], [1000.0, 0.0]]
+    w, lsq, hop = short_windows(pairs, FS, BLOCK)
+    # 80 Hz: 600 against 2400; 235 + 265: one 30 Hz beat (1600) against 9600; 245 + 255: one 10 Hz
+    # beat (4800) against 9600, kept; 240 + 270 Hz: whole periods of both are one beat (1600);
+    # 35 + 45: 4800 against 9600, kept; 1 kHz: 48 against 96, kept
+    assert w.tolist() == [600, 1600, 9600, 1600, 9600, 96]
+    assert lsq.tolist() == [False, True, False, False, False, False] and hop == 8
+    w, lsq, _ = short_windows(pairs, FS, BLOCK, shorten=1)
+    assert w.tolist() == [600, 1600, 4800, 1600, 4800, 48]
+    assert lsq.tolist() == [False, True, True, False, True, False]
+    # a tone whose one period (601 samples) would need a hop of 1: one period rounded up to the
+    # block by least squares instead (608 samples, 1.013 periods)
+    w, lsq, hop = short_windows([[48000.0 / 601, 0.0], [80.0, 0.0]], FS, BLOCK)
+    assert w.tolist() == [608, 600] and lsq.tolist() == [True, False] and hop == 8
+    # too close for a window of one beat on the block grid to be well conditioned: whole periods
+    w, lsq, _ = short_windows([[249.0, 251.0]], FS, BLOCK, max_cond=1.0, shorten=1)
+    assert w.tolist() == [48000] and not lsq.any()  # 1 / gcd(249, 251 Hz) = 1 s
+
+
+def test_least_squares_channels_match_numpy_lstsq():
+    """Channels read by least squares over one beat period and a single tone over 600 samples
+    with a hop of 8: each estimate is ``H`` applied to the joint least-squares phasors (numpy
+    ``lstsq``) of the drive and of each current over the channel's own last window."""
+    rng = np.random.default_rng(8)
+    freqs = np.array([[235.0, 265.0], [80.0, 0.0]])
+    windows, lsq = np.array([1600, 600]), np.array([True, False])
+    obs = Observer(TMMBeam.from_fe(fe_model()), freqs, FS, BLOCK, window=windows, hop=8, lstsq=lsq)
+    H = rng.standard_normal(obs.H.shape)
+    H[1, 1] = 0.0
+    obs.H[:] = H
+    n_total = 1600 + 20 * BLOCK
+    n = np.arange(n_total)
+    drive = np.stack([sum(np.cos(2 * np.pi * f * n / FS + p) for f, p in zip(row, (0.3, 1.9)) if f > 0)
+                      for row in freqs]) + 0.1 * rng.standard_normal((2, n_total))
+    sensed = rng.standard_normal((2 * obs.n_seg, n_total)) * 1e-6
+    for b in range(n_total // BLOCK):
+        sl = slice(b * BLOCK, (b + 1) * BLOCK)
+        assert obs.process(np.ascontiguousarray(drive[:, sl]), np.ascontiguousarray(sensed[:, sl])) == 0
+    Hc = H[..., 0] + 1j * H[..., 1]
+    got = obs.est[..., 0] + 1j * obs.est[..., 1]
+    m = obs.n_seg
+    for c, w in enumerate(windows):
+        f = freqs[c][freqs[c] > 0]
+        t = np.arange(n_total - w, n_total)
+        a = np.stack([g(2 * np.pi * fk * t / FS) for fk in f for g in (np.cos, lambda x: -np.sin(x))], axis=1)
+
+        def fit(x, a=a, w=w):
+            coef, *_ = np.linalg.lstsq(a, x[-w:], rcond=None)
+            return coef[0::2] + 1j * coef[1::2]
+
+        ph = np.stack([fit(drive[c])] + [fit(sensed[c * m + j]) for j in range(m)], axis=-1)  # (n_f, 1 + m)
+        want = np.einsum("kej,kj->ke", Hc[c, :f.size], ph)
+        np.testing.assert_allclose(got[c, :f.size], want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
+        np.testing.assert_allclose(obs.u_out[c, :f.size, 0], np.abs(ph[:, 0]), rtol=1e-9)

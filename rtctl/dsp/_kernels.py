@@ -402,7 +402,10 @@ F_R, F_I = 4, 5  # fresh sum of the hops written since the ring last wrapped
 EST_A, EST_P = 6, 7  # amplitude (peak) and phase (rad) at the last complete hop
 HOP = 8  # samples per hop (constant)
 NHOP = 9  # hops in this slot's window (constant; the ring holds the longest slot's)
-N_ACC = 10
+Z_R, Z_I = 10, 11  # the reference of the sample after the last complete hop, exp(i theta[N])
+X_R, X_I = 12, 13  # the window sum the estimate is made of: S, or S solved for the row's tones
+LSQ = 14  # 1: this slot's row is solved by least squares (solve[s] holds its row of the inverse)
+N_ACC = 15
 
 
 @kernel
@@ -470,6 +473,8 @@ def _lockin_hop(ref, acc, ring, hop_index):
             ring[idx, 1, s] = pi
             acc[ACC_R, s] = 0.0
             acc[ACC_I, s] = 0.0
+            acc[Z_R, s] = ref[ZR, s]
+            acc[Z_I, s] = ref[ZI, s]
             if wrap:
                 # the ring now holds exactly the hops added to F since the last wrap: replace the
                 # add-and-subtract running sum by this fresh one, so round-off cannot drift
@@ -485,10 +490,41 @@ def _lockin_hop(ref, acc, ring, hop_index):
 
 
 @kernel
-def _lockin_estimate(ref, acc):
+def _lockin_solve(acc, solve, s):
+    """Slot ``s``'s window sum with its row's other tones and every mirror removed (see LockIn,
+    "Least squares"): with ``T_l = S_l z_l`` (``z_l`` the reference after the window) over the
+    row's slots ``l``, ``Y = solve[s] T`` (real, imaginary interleaved) and ``X = Y conj(z_s)``."""
+    n_freq = solve.shape[2] // 2
+    b = s - s % n_freq
+    yr = 0.0
+    yi = 0.0
+    for j in range(n_freq):
+        lr = acc[S_R, b + j]
+        li = acc[S_I, b + j]
+        zr = acc[Z_R, b + j]
+        zi = acc[Z_I, b + j]
+        tr = lr * zr - li * zi
+        ti = lr * zi + li * zr
+        yr += solve[s, 0, 2 * j] * tr + solve[s, 0, 2 * j + 1] * ti
+        yi += solve[s, 1, 2 * j] * tr + solve[s, 1, 2 * j + 1] * ti
+    zr = acc[Z_R, s]
+    zi = acc[Z_I, s]
+    acc[X_R, s] = yr * zr + yi * zi
+    acc[X_I, s] = yi * zr - yr * zi
+
+
+@kernel
+def _lockin_estimate(ref, acc, solve):
     """Amplitude and phase of every slot from its window sum (once per call, not per hop); the
-    scale is one per run of slots with equal windows, as in :func:`_lockin_hop`."""
+    scale is one per run of slots with equal windows, as in :func:`_lockin_hop`. A slot whose
+    row is solved by least squares (``LSQ``) reads its solved sum, every other its plain one."""
     ns = acc.shape[1]
+    for s in range(ns):
+        if acc[LSQ, s] != 0.0:
+            _lockin_solve(acc, solve, s)
+        else:
+            acc[X_R, s] = acc[S_R, s]
+            acc[X_I, s] = acc[S_I, s]
     s0 = 0
     while s0 < ns:
         nh = acc[NHOP, s0]
@@ -496,8 +532,8 @@ def _lockin_estimate(ref, acc):
         scale = 2.0 / (nh * acc[HOP, 0])
         for s in range(s0, s1):
             if ref[INC1, s] > 0.0:
-                acc[EST_A, s] = scale * math.hypot(acc[S_R, s], acc[S_I, s])
-                acc[EST_P, s] = math.atan2(acc[S_I, s], acc[S_R, s])
+                acc[EST_A, s] = scale * math.hypot(acc[X_R, s], acc[X_I, s])
+                acc[EST_P, s] = math.atan2(acc[X_I, s], acc[X_R, s])
             else:
                 acc[EST_A, s] = np.nan
                 acc[EST_P, s] = np.nan
@@ -505,7 +541,7 @@ def _lockin_estimate(ref, acc):
 
 
 @kernel
-def lockin_process(ref, pending, chan, acc, ring, x, out):
+def lockin_process(ref, pending, chan, acc, ring, solve, x, out):
     """Demodulate ``x`` at every slot's reference frequency over a sliding window (see LockIn).
 
     Parameters
@@ -522,6 +558,9 @@ def lockin_process(ref, pending, chan, acc, ring, x, out):
     ring : ndarray, shape (n_hops, 2, n_slots), float64
         Partial sums of the hops in the window (real, imaginary); ``n_hops`` the longest
         slot's (a slot uses rows ``0 .. acc[NHOP, s] - 1``).
+    solve : ndarray, shape (n_slots, 2, 2 * n_freq), float64
+        Per slot whose ``acc[LSQ]`` is set: its rows (real, imaginary) of the least-squares
+        inverse over its row's slots (see LockIn); unread for the others.
     x : ndarray, shape (n_channels, n), float64, C-contiguous
         Input block.
     out : ndarray, shape (n_channels, n_freq, 2), float64
@@ -549,7 +588,7 @@ def lockin_process(ref, pending, chan, acc, ring, x, out):
             closed = True
         t += m
     if closed:
-        _lockin_estimate(ref, acc)
+        _lockin_estimate(ref, acc, solve)
     n_freq = out.shape[1]
     for s in range(ns):
         out[s // n_freq, s % n_freq, 0] = acc[EST_A, s]

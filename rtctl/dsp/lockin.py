@@ -7,7 +7,13 @@ import numpy as np
 from rtctl.dsp import _kernels as _k
 from rtctl.dsp.oscillator import _check_block, _check_fs, _check_int
 
-__all__ = ["LockIn", "beat_window", "window_leakage"]
+__all__ = ["LockIn", "MAX_LSQ_COND", "beat_window", "lsq_gram", "window_leakage"]
+
+#: Largest condition number of a least-squares row (:func:`lsq_gram`, normalized to 1 for
+#: orthogonal tones) that :class:`LockIn` accepts: noise in the estimate grows by up to this
+#: factor. One beat period of a pair gives 1.07 (235 + 265 Hz at 48 kHz), 0.8 of it 1.7, 0.6 of it
+#: 3.1.
+MAX_LSQ_COND = 2.0
 
 
 def window_leakage(df, window, fs):
@@ -44,6 +50,56 @@ def window_leakage(df, window, fs):
     with np.errstate(invalid="ignore", divide="ignore"):
         d = np.abs(np.sin(window * x) / (window * np.sin(x)))
     return np.where(np.sin(x) == 0.0, 1.0, d)
+
+
+def lsq_gram(freqs, window, fs):
+    """The fixed matrix of least-squares demodulation at ``freqs`` over a ``window``-sample window.
+
+    With references ``z_l[n] = exp(i theta_l[n])`` at steady frequencies and ``z_l`` their value
+    on the sample after the window, a signal ``x = sum_l Re(X_l z_l[n])`` has lock-in sums
+    ``S_k = sum_n x[n] conj(z_k[n])`` that obey ``T = M Y`` with ``T_k = S_k z_k`` and
+    ``Y_l = X_l z_l`` (real and imaginary parts interleaved): the window's Gram matrix, turned by
+    the references' phases, is this fixed one. Entry by entry, with ``c = sum_{p=1..W}
+    exp(-i (w_l - w_k) p)`` (the neighbour) and ``d = sum_{p=1..W} exp(i (w_l + w_k) p)`` (the
+    mirror), ``w = 2 pi f / fs``::
+
+        M[2k, 2l]   = (Re c + Re d) / 2     M[2k, 2l+1]   = (Im d - Im c) / 2
+        M[2k+1, 2l] = (Im c + Im d) / 2     M[2k+1, 2l+1] = (Re c - Re d) / 2
+
+    Over whole periods of every tone ``M = W / 2`` times the identity (plain lock-in).
+
+    Parameters
+    ----------
+    freqs : array_like, shape (K,)
+        Tone frequencies, Hz, ``0 < f < fs / 2``.
+    window : int
+        Samples.
+    fs : float
+        Hz.
+
+    Returns
+    -------
+    ndarray, shape (2K, 2K)
+
+    Examples
+    --------
+    >>> m = lsq_gram([235.0, 265.0], 1600, 48000.0) / 800
+    >>> round(float(np.linalg.cond(m)), 3)   # one beat period: only the mirrors couple
+    1.069
+    """
+    w = 2.0 * np.pi * np.asarray(freqs, dtype=np.float64).ravel() / fs
+    p = np.arange(1, int(window) + 1, dtype=np.float64)
+    k_ = w.size
+    m = np.empty((2 * k_, 2 * k_))
+    for k in range(k_):
+        for l in range(k_):
+            c = np.exp(-1j * (w[l] - w[k]) * p).sum()
+            d = np.exp(1j * (w[l] + w[k]) * p).sum()
+            m[2 * k, 2 * l] = 0.5 * (c.real + d.real)
+            m[2 * k, 2 * l + 1] = 0.5 * (d.imag - c.imag)
+            m[2 * k + 1, 2 * l] = 0.5 * (c.imag + d.imag)
+            m[2 * k + 1, 2 * l + 1] = 0.5 * (c.real - d.real)
+    return m
 
 
 def beat_window(fs, beat, periods=1):
@@ -111,6 +167,13 @@ class LockIn:
         Samples over which a reference frequency change is ramped, as in the oscillator bank;
         use the bank's ramp so that a demodulated tone keeps reading the bank's phase across
         frequency changes.
+    lstsq : bool or array_like of bool, shape (n_channels,)
+        Rows (or every row) whose tones are demodulated by least squares: each estimate free of
+        the row's other tones and of every mirror over any window, not only over whole periods
+        (see "Least squares"). Their reference frequencies are fixed (:meth:`set_freq` refuses).
+    max_cond : float
+        A least-squares row whose matrix (:func:`lsq_gram`, over ``W / 2``) has a larger
+        condition number is refused (``ValueError``): its tones are too close for its window.
 
     Notes
     -----
@@ -159,8 +222,20 @@ class LockIn:
     mirrors vanish too, otherwise they stay below ``fs / (pi (2 f_c - f_b) W)`` (the mirror of the
     lower tone sits at ``2 f_c - f_b`` away).
 
+    **Least squares.** A row with ``lstsq`` set fits its tones jointly: the estimates are the
+    least-squares amplitudes and phases of ``sum_l Re(X_l z_l[n])`` over the window, exact for a
+    signal made of those tones over any window of at least about one period of their closest
+    spacing (one beat period of a pair: 1600 samples for 235 + 265 Hz at 48 kHz, where whole
+    periods of both take 9600). The normal equations ``S_k = sum_l (X_l c_lk + conj(X_l) d_lk) / 2``
+    relate the plain window sums ``S`` to the phasors through the window's Gram matrix, which for
+    steady references is a fixed matrix (:func:`lsq_gram`) turned by the references' phases at the
+    window's end. Its inverse is taken once, at construction; per call, each slot costs one row of
+    it (``2 * n_freq`` products) on top of the plain estimate. With ``m`` the matrix over
+    ``W / 2``, noise in the estimate grows by at most ``cond(m)`` (reported as :attr:`cond`);
+    rows above ``max_cond`` are refused.
+
     For the loop: ``lockin_process(*lockin.args, x, out)`` with
-    ``lockin.args == (ref, pending, chan, acc, ring)``.
+    ``lockin.args == (ref, pending, chan, acc, ring, solve)``.
 
     Attributes
     ----------
@@ -168,6 +243,11 @@ class LockIn:
         The longest window, samples (the only one unless given per row).
     windows : ndarray of int64, shape (n_channels,)
         Each row's window, samples.
+    lstsq : ndarray of bool, shape (n_channels,)
+        Rows solved by least squares.
+    cond : ndarray, shape (n_channels,)
+        Condition number of each least-squares row's matrix over ``W / 2`` (1 for one tone over
+        whole periods); NaN for plain rows.
 
     Examples
     --------
@@ -182,7 +262,7 @@ class LockIn:
     array([1., 1.])
     """
 
-    def __init__(self, n_channels, freq, fs, window, hop=None, ramp=32):
+    def __init__(self, n_channels, freq, fs, window, hop=None, ramp=32, lstsq=False, max_cond=MAX_LSQ_COND):
         self.n_channels = _check_int("n_channels", n_channels, 1)
         self.fs = _check_fs(fs)
         if np.ndim(window) == 0:
@@ -216,12 +296,31 @@ class LockIn:
         self.acc = np.zeros((_k.N_ACC, ns))
         self._n_hops = np.repeat(self.windows // self.hop, self.n_freq).astype(np.float64)
         self.ring = np.zeros((self.window // self.hop, 2, ns))
+        self.lstsq = np.broadcast_to(np.asarray(lstsq, dtype=bool), (self.n_channels,)).copy()
+        self.cond = np.full(self.n_channels, np.nan)
+        self.solve = np.zeros((ns, 2, 2 * self.n_freq))
+        self._lsq = np.zeros(ns)
+        for r in np.nonzero(self.lstsq)[0]:
+            used = np.nonzero(self._freq0[r] > 0.0)[0]
+            w = int(self.windows[r])
+            m = lsq_gram(self._freq0[r, used], w, self.fs)
+            self.cond[r] = np.linalg.cond(m / (0.5 * w))
+            if not self.cond[r] <= max_cond:
+                raise ValueError(f"row {r}: least squares over {w} samples at {self._freq0[r, used].tolist()} Hz is "
+                                 f"ill-conditioned (condition {self.cond[r]:.3g} > {max_cond:g}): lengthen the window")
+            # the plain sum's scale 2 / W turns a solved sum (W / 2) Y into the phasor Y
+            inv = (0.5 * w) * np.linalg.inv(m)
+            cols = np.ravel(np.column_stack([2 * used, 2 * used + 1]))
+            for i, k in enumerate(used):
+                s = r * self.n_freq + k
+                self.solve[s][:, cols] = inv[2 * i:2 * i + 2]
+                self._lsq[s] = 1.0
         self.reset()
 
     @property
     def args(self):
         """Arrays in kernel order: ``lockin_process(*lockin.args, x, out)``."""
-        return (self.ref, self.pending, self.chan, self.acc, self.ring)
+        return (self.ref, self.pending, self.chan, self.acc, self.ring, self.solve)
 
     def process(self, x, out=None):
         """Demodulate the block ``x``; return the estimates at the last completed hop.
@@ -243,7 +342,7 @@ class LockIn:
             out = np.empty(shape)
         elif not isinstance(out, np.ndarray) or out.shape != shape or out.dtype != np.float64:
             raise ValueError(f"out must be a float64 array of shape {shape}, got {getattr(out, 'shape', out)!r}")
-        _k.lockin_process(self.ref, self.pending, self.chan, self.acc, self.ring, x, out)
+        _k.lockin_process(self.ref, self.pending, self.chan, self.acc, self.ring, self.solve, x, out)
         return out
 
     def reset(self):
@@ -254,12 +353,17 @@ class LockIn:
         self.acc[:] = 0.0
         self.acc[_k.HOP] = self.hop
         self.acc[_k.NHOP] = self._n_hops
+        self.acc[_k.LSQ] = self._lsq
+        self.acc[_k.Z_R] = self.ref[_k.ZR]
+        self.acc[_k.Z_I] = self.ref[_k.ZI]
         self.acc[_k.EST_A] = np.where(used, 0.0, np.nan)
         self.acc[_k.EST_P] = np.where(used, 0.0, np.nan)
         self.ring[:] = 0.0
 
     def set_freq(self, freq, ramp=None):
         """New reference frequencies, shape (n_channels, n_freq) (NaN or 0: unused), from the next call."""
+        if self.lstsq.any():
+            raise ValueError("set_freq: least-squares rows are solved for the frequencies they were built with")
         f = np.asarray(freq, dtype=np.float64)
         if f.ndim == 1 and self.n_freq == 1:
             f = f[:, None]
@@ -273,7 +377,7 @@ class LockIn:
     def phasor(self):
         """ndarray, shape (n_channels, n_freq), complex: ``A exp(i phi)`` at the last hop (NaN unused)."""
         scale = np.repeat(2.0 / self.windows, self.n_freq)
-        x = scale * (self.acc[_k.S_R] + 1j * self.acc[_k.S_I])
+        x = scale * (self.acc[_k.X_R] + 1j * self.acc[_k.X_I])
         x[~(self.ref[_k.INC1] > 0.0)] = np.nan
         return x.reshape(self.n_channels, self.n_freq)
 

@@ -180,7 +180,7 @@ class Rig:
         tones only (a 250 Hz channel is not made to wait for a 2 Hz one), and :attr:`observers`
         lists the channels one by one (views of their group's stage) for a controller each; else
         the window holds whole periods of every tone of the group."""
-        from ..selfsense.rt import tone_windows
+        from ..selfsense.rt import short_windows
         from ..selfsense.stage import ObserverStage
 
         if scene.stimulus.kind != "tones":
@@ -196,9 +196,10 @@ class Rig:
                 per = [[f for tn in self.tones if tn.channel == c for f in tn.freqs] for c in range(ch0, c1)]
                 width = max(1, max(len(p) for p in per))
                 freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
-                window = tone_windows(freqs, self.fs, self.block) if self.closed else None
+                window, lstsq, hop = (short_windows(freqs, self.fs, self.block) if self.closed
+                                      else (None, False, self.block))
                 obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[ch0:c1],
-                                           window=window)
+                                           window=window, hop=hop, lstsq=lstsq)
                 st = ObserverStage(obs, self.latency, self.out[ch0:c1], self.sensed[row0:row0 + n * n_seg],
                                    self.estimated_amp[ch0:c1])
                 self.observer_stages.append((g.name, st, g, ch0))
@@ -237,7 +238,7 @@ class Rig:
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
-                                      obs.window // self.block, self.block, ring)
+                                      -(-obs.window // self.block), self.block, ring)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)

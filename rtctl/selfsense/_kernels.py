@@ -12,20 +12,20 @@ from rtctl.dsp import _kernels as _dk
 STATUS_NONFINITE = 4
 
 _ZR, _ZI, _WR, _WI = _dk.ZR, _dk.ZI, _dk.WR, _dk.WI
-_SR, _SI = _dk.S_R, _dk.S_I
+_XR, _XI = _dk.X_R, _dk.X_I  # the window sums the lock-ins' estimates are made of
 _lockin = _dk.lockin_process
 
 
 @kernel
-def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan, i_acc, i_ring,
-                     u_out, i_out, H, scale, est, wave, drive, sensed):
+def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring,
+                     i_solve, u_out, i_out, H, scale, est, wave, drive, sensed):
     """One block: demodulate drive and currents, apply the observer, rebuild the tip waveform.
 
     Parameters
     ----------
-    u_ref, u_pend, u_chan, u_acc, u_ring : ndarray
+    u_ref, u_pend, u_chan, u_acc, u_ring, u_solve : ndarray
         Lock-in of the drive (``LockIn.args``), slots ``(n_ch, n_tones)``.
-    i_ref, i_pend, i_chan, i_acc, i_ring : ndarray
+    i_ref, i_pend, i_chan, i_acc, i_ring, i_solve : ndarray
         Lock-in of the sensed currents, rows ``ch * n_seg + seg``, slots ``(n_ch * n_seg, n_tones)``;
         each row's window that of its channel in the drive's lock-in.
     u_out, i_out : ndarray, shapes (n_ch, n_tones, 2) and (n_ch * n_seg, n_tones, 2)
@@ -48,8 +48,8 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan
     int
         0, or ``STATUS_NONFINITE`` if any estimate is NaN/Inf.
     """
-    _lockin(u_ref, u_pend, u_chan, u_acc, u_ring, drive, u_out)
-    _lockin(i_ref, i_pend, i_chan, i_acc, i_ring, sensed, i_out)
+    _lockin(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out)
+    _lockin(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, sensed, i_out)
     n_ch, n_t, n_est = est.shape[0], est.shape[1], est.shape[2]
     n_seg = H.shape[3] - 1
     n = drive.shape[1]
@@ -60,8 +60,8 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan
             wave[c, s] = 0.0
         for k in range(n_t):
             us = c * n_t + k
-            dr = sc * u_acc[_SR, us]
-            di = sc * u_acc[_SI, us]
+            dr = sc * u_acc[_XR, us]
+            di = sc * u_acc[_XI, us]
             for e in range(n_est):
                 hr = H[c, k, e, 0, 0]
                 hi = H[c, k, e, 0, 1]
@@ -69,8 +69,8 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan
                 zi = hr * di + hi * dr
                 for j in range(n_seg):
                     js = (c * n_seg + j) * n_t + k
-                    sr = sc * i_acc[_SR, js]
-                    si = sc * i_acc[_SI, js]
+                    sr = sc * i_acc[_XR, js]
+                    si = sc * i_acc[_XI, js]
                     hr = H[c, k, e, 1 + j, 0]
                     hi = H[c, k, e, 1 + j, 1]
                     zr += hr * sr - hi * si

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import math
+from fractions import Fraction
+
 import numpy as np
 
-from rtctl.dsp.lockin import LockIn
+from rtctl.dsp.lockin import MAX_LSQ_COND, LockIn, lsq_gram
 from rtctl.errors import ModelError
 from rtctl.selfsense import _kernels
 from rtctl.selfsense.observer import EST_NAMES, MAX_COND, N_EST, design
 
-__all__ = ["Observer", "ObserverRows", "observer_process", "tone_window", "tone_windows"]
+__all__ = ["Observer", "ObserverRows", "observer_process", "short_windows", "tone_window", "tone_windows"]
 
 #: ``observer_process(*obs.args, drive, sensed) -> int`` (callable from other numba functions).
 observer_process = _kernels.observer_process
@@ -60,6 +63,94 @@ def tone_windows(freqs, fs, hop, max_seconds=1.0) -> np.ndarray:
     return np.array([tone_window(row, fs, hop, max_seconds) for row in f], dtype=np.int64)
 
 
+def _whole_periods(f, fs) -> int:
+    """Fewest samples holding whole periods of every tone of ``f`` (Hz, > 0): the least common
+    multiple of the numerators of ``fs / f`` (``W f / fs`` is whole exactly when ``fs / f``'s
+    reduced numerator divides ``W``)."""
+    w = 1
+    for x in f:
+        q = Fraction(fs).limit_denominator(1 << 20) / Fraction(float(x)).limit_denominator(1 << 20)
+        w = w * q.numerator // math.gcd(w, q.numerator)
+    return w
+
+
+#: :func:`short_windows` leaves a channel's window on the block grid unless the grid makes it more
+#: than this many times the shortest: a shorter window answers sooner but lets a ringing plant
+#: leak more into the estimate (120 Hz over 400 samples instead of 800: a lifted beam with half the
+#: damping settled 29 ms later after lift-off, for 4-12 ms gained elsewhere; bench/control_sweep.py)
+SHORTEN = 2
+#: nor does it make the lock-ins' hop shorter than this (each hop costs the ring update once more
+#: per block for every slot of the group): a window of whole periods that would need it is read by
+#: least squares on the block grid instead (48000 / 601 Hz: 608 samples, not 601 with a hop of 1)
+MIN_HOP = 8
+
+
+def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shorten=SHORTEN):
+    """Per channel, a lock-in window over which its own tones are read without leakage from one
+    another, not forced long by the block grid, and the hop that lets every channel have it.
+
+    A channel's window is :func:`tone_window` on the block grid (whole periods of its tones, a
+    multiple of ``block``), unless that is more than ``shorten`` times the shortest window without
+    leakage, which is then taken: either the fewest samples holding whole periods of all its tones
+    (80 Hz: 600 samples at 48 kHz, where multiples of a 32-sample block need 2400), or, read by
+    least squares, a multiple of ``block`` of at least one period of their closest spacing and of
+    the lowest tone (a 235 + 265 Hz pair: 1600 samples, one beat period, against 9600 for whole
+    periods of both), if its condition number (as :class:`~rtctl.dsp.lockin.LockIn` reports it)
+    is within ``max_cond``. The hop, shared by the channels' lock-ins, is the largest divisor of
+    ``block`` dividing every window, so that each window still ends with the block; a window of
+    whole periods that would need a hop under :data:`MIN_HOP` is not taken (least squares on the
+    block grid, over at least one period of the lowest tone, may be).
+
+    Parameters
+    ----------
+    freqs : array_like, shape (n_channels, n_tones)
+        Hz; 0 or NaN unused.
+    fs : float
+    block : int
+    max_seconds : float
+        As for :func:`tone_window`.
+    max_cond : float
+    shorten : float
+        See :data:`SHORTEN`.
+
+    Returns
+    -------
+    windows : ndarray of int64, shape (n_channels,)
+    lstsq : ndarray of bool, shape (n_channels,)
+    hop : int
+
+    Examples
+    --------
+    >>> w, lsq, hop = short_windows([[80.0, 0.0], [235.0, 265.0], [120.0, 0.0]], 48000.0, 32)
+    >>> w.tolist(), lsq.tolist(), hop
+    ([600, 1600, 800], [False, True, False], 8)
+    """
+    f = np.atleast_2d(np.asarray(freqs, dtype=float))
+    block = int(block)
+    windows = np.zeros(f.shape[0], dtype=np.int64)
+    lstsq = np.zeros(f.shape[0], dtype=bool)
+    for c, row in enumerate(f):
+        row = np.sort(row[np.isfinite(row) & (row > 0)])
+        w0 = tone_window(row, fs, block, max_seconds)
+        windows[c] = w0
+        if row.size == 0:
+            continue
+        w = _whole_periods(row, fs)
+        if math.gcd(block, w) < min(block, MIN_HOP):
+            w = w0  # too fine a hop: not shorter than the block grid's
+        if row.size == 1 or np.diff(row).min() > 0:
+            span = fs / min(float(np.diff(row).min()) if row.size > 1 else math.inf, float(row[0]))
+            wl = block * math.ceil(span / block - 1e-9)
+            if wl < w and np.linalg.cond(lsq_gram(row, wl, fs) / (0.5 * wl)) <= max_cond:
+                w, lstsq[c] = wl, True
+        if w0 > shorten * w:
+            windows[c] = w
+        else:
+            lstsq[c] = False
+    hop = math.gcd(block, *(int(x) for x in windows))
+    return windows, lstsq, hop
+
+
 class Observer:
     """Self-sensing observer for ``n_channels`` identical bimorphs, one block at a time.
 
@@ -83,12 +174,19 @@ class Observer:
     fs : float
         Hz.
     block : int
-        Samples per block (the lock-in hop).
+        Samples per block.
     frontend : FrontEnd, optional
         Drive and sense chain (default: ideal).
     window : int or array_like of int, shape (n_channels,), optional
-        Lock-in window, samples, multiples of ``block``: one for all channels, or one per channel
-        (default :func:`tone_window` of all tones).
+        Lock-in window, samples, multiples of ``hop``: one for all channels, or one per channel
+        (default :func:`tone_window` of all tones; :func:`short_windows` gives the shortest).
+    hop : int, optional
+        The lock-ins' hop, a divisor of ``block`` (default ``block``): every window ends with
+        the block, so a window need only be a multiple of the hop (80 Hz's 600 samples with a hop
+        of 8 at block 32); each hop costs the lock-ins' ring update once more per block.
+    lstsq : bool or array_like of bool, shape (n_channels,), optional
+        Channels whose tones are read by least squares (:class:`~rtctl.dsp.lockin.LockIn`):
+        drive and currents alike, free of one another over windows of any length.
     image_load : MaxwellLoad, optional
         Load assumed for the aliased images.
     max_cond : float
@@ -132,7 +230,7 @@ class Observer:
     """
 
     def __init__(self, beam, freqs, fs, block, frontend=None, window=None, image_load=None,
-                 max_cond=MAX_COND, wave=None):
+                 max_cond=MAX_COND, wave=None, hop=None, lstsq=False):
         f = np.atleast_2d(np.asarray(freqs, dtype=float))
         f = np.where(np.isfinite(f), f, 0.0)
         if np.any(f < 0) or np.any(f >= fs / 2):
@@ -149,10 +247,14 @@ class Observer:
             raise ModelError(f"window must be an integer >= 1 or one per channel, shape ({n_ch},); got {window!r}")
         self.windows = np.array(w, dtype=np.int64)
         self.window = int(self.windows.max())
+        self.hop = self.block if hop is None else int(hop)
+        if not (1 <= self.hop <= self.block and self.block % self.hop == 0):
+            raise ModelError(f"hop = {hop} must divide block = {self.block}")
         for c, wc in enumerate(self.windows):
-            if wc % self.block:
+            if wc % self.hop:
                 name = "window" if np.ndim(window) == 0 else f"window[{c}]"
-                raise ModelError(f"{name} = {wc} must be a multiple of block = {self.block}")
+                raise ModelError(f"{name} = {wc} must be a multiple of hop = {self.hop}")
+        self.lstsq = np.broadcast_to(np.asarray(lstsq, dtype=bool), (n_ch,)).copy()
         self.scale = 2.0 / self.windows
         self.H = np.zeros((n_ch, n_t, N_EST, 1 + n_seg, 2))
         self.cond = np.full((n_ch, n_t), np.nan)
@@ -169,9 +271,12 @@ class Observer:
                 self.H[c, k, :, :, 1] = ob.H.imag
                 self.cond[c, k] = ob.cond
         self.designs = cache
-        self.lock_u = LockIn(n_ch, f, fs, self.windows, hop=self.block)
-        self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, np.repeat(self.windows, n_seg),
-                             hop=self.block)
+        try:
+            self.lock_u = LockIn(n_ch, f, fs, self.windows, hop=self.hop, lstsq=self.lstsq)
+            self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, np.repeat(self.windows, n_seg),
+                                 hop=self.hop, lstsq=np.repeat(self.lstsq, n_seg))
+        except ValueError as e:
+            raise ModelError(f"observer lock-in: {e}") from None
         self.est = np.zeros((n_ch, n_t, N_EST, 2))
         if wave is None:
             wave = np.zeros((n_ch, self.block))

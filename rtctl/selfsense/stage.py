@@ -21,7 +21,7 @@ from .rt import ObserverRows, observer_process
 
 
 @kernel
-def observe_stage(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan, i_acc, i_ring,
+def observe_stage(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring, i_solve,
                   u_out, i_out, H, scale, est, wave, delay, head, out, sensed, amp):
     """Observe one block and push this block's drive into the delay ring.
 
@@ -47,7 +47,7 @@ def observe_stage(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan, i
         0 or ``ESTIMATE_NONFINITE``.
     """
     k = head[0]
-    s = observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, i_ref, i_pend, i_chan, i_acc, i_ring,
+    s = observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring, i_solve,
                          u_out, i_out, H, scale, est, wave, delay[k], sensed)
     delay[k, :, :] = out
     head[0] = (k + 1) % delay.shape[0]
@@ -63,8 +63,8 @@ class ObserverStage:
     """An observer with its drive delay ring and amplitude output: the stage's arguments and its
     reset, for a rig to wrap into its stage list."""
 
-    ARG_NAMES = ("u_ref", "u_pend", "u_chan", "u_acc", "u_ring", "i_ref", "i_pend", "i_chan", "i_acc",
-                 "i_ring", "u_out", "i_out", "H", "scale", "est", "wave", "delay", "head", "out", "sensed",
+    ARG_NAMES = ("u_ref", "u_pend", "u_chan", "u_acc", "u_ring", "u_solve", "i_ref", "i_pend", "i_chan", "i_acc",
+                 "i_ring", "i_solve", "u_out", "i_out", "H", "scale", "est", "wave", "delay", "head", "out", "sensed",
                  "amp")
 
     def __init__(self, observer, latency_blocks: int, out, sensed, amp):
