@@ -24,7 +24,9 @@ import time
 
 import numpy as np
 
-from .._codegen import fence
+from numba import carray
+
+from .._codegen import fence, voidptr_at
 from .._numba import kernel
 
 #: Record fields: target (index into the tuple of pending arrays), row, column, value.
@@ -39,7 +41,8 @@ class QueueFull(RuntimeError):
 
 @kernel
 def drain(ring, heads, targets):
-    """Apply every published record: ``targets[t][row, col] = value``. Returns 0 (a status)."""
+    """Apply every published record: ``target t [row, col] = value``, target ``t`` reached through
+    row ``t`` of the address table ``targets`` (address, elements, columns). Returns 0 (a status)."""
     w = heads[WRITE]
     fence()  # the records up to w are visible once w is
     r = heads[READ]
@@ -47,7 +50,8 @@ def drain(ring, heads, targets):
     while r < w:
         i = r % cap
         t = int(ring[i, 0])
-        targets[t][int(ring[i, 1]), int(ring[i, 2])] = ring[i, 3]
+        dst = carray(voidptr_at(targets[t, 0]), (targets[t, 1],), np.float64)
+        dst[int(ring[i, 1]) * targets[t, 2] + int(ring[i, 2])] = ring[i, 3]
         r += 1
     fence()  # every read above happens before the slots are handed back
     heads[READ] = r
@@ -89,11 +93,18 @@ class ParamQueue:
         self._staged = np.zeros((capacity, N_FIELD))
         self._n = 0
         self._ids = {id(t): i for i, t in enumerate(self.targets)}
+        # the targets by address: one argument of one type however many there are (a tuple of a
+        # thousand arrays is a type numba will not build, and a new one for every count); read-only,
+        # so a checkpoint takes it for the constant it is (the targets themselves are saved)
+        self.table = np.array([(t.__array_interface__["data"][0], t.size, t.shape[1]) for t in self.targets],
+                              dtype=np.int64)
+        self.table.flags.writeable = False
 
     @property
     def args(self) -> tuple:
-        """The :func:`drain` stage's arguments."""
-        return self.ring, self.heads, self.targets
+        """The :func:`drain` stage's arguments (the targets as an address table: keep ``targets``
+        alive and unmoved while the block function can run)."""
+        return self.ring, self.heads, self.table
 
     def target_id(self, array) -> int:
         try:

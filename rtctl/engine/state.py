@@ -52,6 +52,7 @@ def state_arrays(rig) -> list:
     for s in rig.stages:
         for a in s.args.values():
             _add(a, found)
+    _add(rig.queue.targets, found)  # the parameter queue reaches them by address
     dev = rig.device
     if hasattr(dev, "state_arrays"):
         _add(dev.state_arrays(), found)
