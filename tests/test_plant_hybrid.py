@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from numba import njit
 
 from rtctl.errors import ModelError
-from rtctl.plant.hybrid import HybridBuilder, HybridGroup, HybridModel, Lin, hybrid_process, unilateral
+from rtctl.plant.hybrid import HybridBuilder, HybridGroup, HybridModel, Lin, hybrid_process, specialized, unilateral
 
 FS = 48000.0
 
@@ -251,4 +251,38 @@ def test_kernel_is_callable_from_numba_with_the_contract_arguments():
     drive = np.full((2, 32), 0.01)
     truth = np.empty((2, 4, 32))
     assert call(g.args, drive, np.empty((0, 32)), truth) == 0
-    assert g.kernel is hybrid_process
+    assert g.kernel is specialized(model.S, model.n_states)
+
+
+def _pin_groups():
+    from rtctl.plant.dot import DotGroup, DotPin
+    from rtctl.plant.em import EMGroup, EMPlant
+    from rtctl.plant.solenoid import SolenoidGroup, SolenoidPin
+
+    return [("two-stop", lambda: HybridGroup(two_stop_oscillator(), FS, 3, x0=[0.0, 0.0],
+                                             sensed=[("v", 1, 1e-4, 0.05)],
+                                             probes=[("top", "", 1)])),
+            ("dot", lambda: DotGroup(DotPin(), FS, 4)),
+            ("solenoid", lambda: SolenoidGroup(SolenoidPin(), FS, 3)),
+            ("em", lambda: EMGroup(EMPlant(preload=0.03), FS, n_channels=3))]
+
+
+@pytest.mark.parametrize("name,make", _pin_groups(), ids=[n for n, _ in _pin_groups()])
+def test_specialized_kernel_is_bitwise_the_generic_one(name, make):
+    """The kernel generated for the model's switch pattern against the generic loops over
+    every entry of S: the same samples, states, probes and status bits, through pulses that
+    move the pins across their switches."""
+    a, b = make(), make()
+    assert a.kernel is not hybrid_process
+    nc, nb = a.n_channels, 64
+    rng = np.random.default_rng(7)
+    scale = 0.05 if name == "two-stop" else 5.0
+    for blk in range(40):
+        level = scale * rng.choice([-1.0, 0.0, 1.0], size=(nc, 1))
+        drive = np.ascontiguousarray(np.repeat(level, nb, axis=1) + 0.01 * scale * rng.standard_normal((nc, nb)))
+        out = []
+        for g, fn in ((a, a.kernel), (b, hybrid_process)):
+            sensed, truth = np.empty((nc * g.n_sensed, nb)), np.empty((nc, 4, nb))
+            out.append((fn(*g.args, drive, sensed, truth), sensed, truth, g.state.copy(), g.probe.copy()))
+        for x, y in zip(*out):
+            assert np.array_equal(x, y), (name, blk)
