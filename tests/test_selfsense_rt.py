@@ -24,6 +24,15 @@ def fe_model():
     return build_beam(spec)
 
 
+def _feed(obs, H, drive, sensed):
+    """Run ``obs`` over the samples block by block; its matrices ``H`` and estimates as complex,
+    and its segments per channel."""
+    for b in range(drive.shape[1] // BLOCK):
+        sl = slice(b * BLOCK, (b + 1) * BLOCK)
+        assert obs.process(np.ascontiguousarray(drive[:, sl]), np.ascontiguousarray(sensed[:, sl])) == 0
+    return H[..., 0] + 1j * H[..., 1], obs.est[..., 0] + 1j * obs.est[..., 1], obs.n_seg
+
+
 def test_kernel_matches_naive_twin():
     rng = np.random.default_rng(5)
     freqs = np.array([[245.0, 255.0], [1000.0, 0.0], [120.0, 40.0]])
@@ -65,12 +74,7 @@ def test_window_per_channel_matches_naive_twin_per_channel():
     n = np.arange(n_total)
     drive = np.stack([np.cos(2 * np.pi * f[0] * n / FS + 0.3) + rng.standard_normal(n_total) for f in freqs])
     sensed = rng.standard_normal((4 * obs.n_seg, n_total)) * 1e-6
-    for b in range(n_total // BLOCK):
-        sl = slice(b * BLOCK, (b + 1) * BLOCK)
-        assert obs.process(np.ascontiguousarray(drive[:, sl]), np.ascontiguousarray(sensed[:, sl])) == 0
-    Hc = H[..., 0] + 1j * H[..., 1]
-    got = obs.est[..., 0] + 1j * obs.est[..., 1]
-    m = obs.n_seg
+    Hc, got, m = _feed(obs, H, drive, sensed)
     for c, w in enumerate(windows):
         rows = slice(c * m, (c + 1) * m)
         want = observer_block(Hc[c:c + 1], drive[c:c + 1, -w:], sensed[rows, -w:], freqs[c:c + 1], FS, m,
@@ -212,12 +216,7 @@ def test_least_squares_channels_match_numpy_lstsq():
     drive = np.stack([sum(np.cos(2 * np.pi * f * n / FS + p) for f, p in zip(row, (0.3, 1.9)) if f > 0)
                       for row in freqs]) + 0.1 * rng.standard_normal((2, n_total))
     sensed = rng.standard_normal((2 * obs.n_seg, n_total)) * 1e-6
-    for b in range(n_total // BLOCK):
-        sl = slice(b * BLOCK, (b + 1) * BLOCK)
-        assert obs.process(np.ascontiguousarray(drive[:, sl]), np.ascontiguousarray(sensed[:, sl])) == 0
-    Hc = H[..., 0] + 1j * H[..., 1]
-    got = obs.est[..., 0] + 1j * obs.est[..., 1]
-    m = obs.n_seg
+    Hc, got, m = _feed(obs, H, drive, sensed)
     for c, w in enumerate(windows):
         f = freqs[c][freqs[c] > 0]
         t = np.arange(n_total - w, n_total)
