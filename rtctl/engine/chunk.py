@@ -39,11 +39,12 @@ from rtctl.engine.pace import mark, now_ns, wait
 
 @kernel
 def run_blocks(tab, k, k_end, st, period_ns, paced, strict, traced, times, lates, missed,
-               plan, scales, f32, u32, heads, late_col):
+               plan, scales, f32, u32, heads, late_col, progress):
     end = now_ns(st) + {slice_ns}
     seen = 0
     status = 0
     why = {END}
+    progress[0] = k
     while k < k_end:
         if traced and not strict and heads[0] - heads[1] >= f32.shape[0]:
             why = {ROOM}
@@ -62,6 +63,8 @@ def run_blocks(tab, k, k_end, st, period_ns, paced, strict, traced, times, lates
             status = end_untraced(st, k, period_ns, paced, times, lates, missed, status)
         seen |= status
         k += 1
+        progress[0] = k
+        progress[1] |= status
         if status & {faults}:
             why = {FAULT}
             break
@@ -100,7 +103,12 @@ class BlockRuns:
                          np.zeros((1, 4), dtype=np.float32), np.zeros((1, 4), dtype=np.uint32),
                          np.zeros(4, dtype=np.int64), -1)
         self._mid = (float(period_ns), bool(paced), bool(strict), traced)
-        self._ring = tuple(ring_args)
+        # written by the compiled runs after every block: the next block, the OR of every status.
+        # Ctrl-C is raised in Python at any point after a run returns, so the loop takes what ran
+        # from here (sync), never from a return value it may not have received.
+        self.progress = np.zeros(2, dtype=np.int64)
+        self._counted = 0  # the block up to which rig.blocks has counted
+        self._ring = (*ring_args, self.progress)
 
     @staticmethod
     def usable(rig) -> bool:
@@ -114,12 +122,31 @@ class BlockRuns:
 
         t, m = np.zeros(1), np.zeros(1, dtype=np.bool_)
         self.fn(self.rig.block_function.table, 0, 0, pace.new_state(), *self._mid, t, t, m, *self._ring)
+        self.start(0)
+
+    def start(self, k: int) -> None:
+        """A run of the loop begins at block ``k``."""
+        self.progress[:] = (k, 0)
+        self._counted = k
+
+    def sync(self) -> int:
+        """The next block to run, whatever interrupted the Python around the last run; counts
+        the blocks run into ``rig.blocks`` once."""
+        k = int(self.progress[0])
+        self.rig.blocks += k - self._counted
+        self._counted = k
+        return k
+
+    @property
+    def status_seen(self) -> int:
+        """The OR of the status bits of every block run since :meth:`start`."""
+        return int(self.progress[1])
 
     def __call__(self, k: int, k_end: int, st, times, lates, missed) -> tuple:
         """Run blocks ``k`` ... at most ``k_end - 1`` (``st``, ``times``, ``lates``, ``missed``:
         as :func:`rtctl.engine.pace.settle` takes them); returns ``(next block, OR of the status
         bits, last block's status, why)`` (``why``: :data:`END`, :data:`FAULT`, ...)."""
-        k1, seen, status, why = self.fn(self.rig.block_function.table, k, k_end, st, *self._mid, times, lates,
-                                        missed, *self._ring)
-        self.rig.blocks += k1 - k
-        return int(k1), int(seen), int(status), int(why)
+        self.progress[0] = self._counted = k  # blocks run before this call were counted by their caller
+        _, seen, status, why = self.fn(self.rig.block_function.table, k, k_end, st, *self._mid, times, lates,
+                                       missed, *self._ring)
+        return self.sync(), int(seen), int(status), int(why)

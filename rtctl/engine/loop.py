@@ -188,6 +188,8 @@ class Loop:
         wait, mark, strict = pace.wait, pace.mark, self.strict
         advance, apply_schedule = rig.advance, rig.apply_schedule
         runs = self.runs
+        if runs is not None:
+            runs.start(0)
         cpu0 = time.thread_time()
         try:
             apply_schedule(0)  # before the clock starts: block 0 starts with parameters to publish
@@ -206,7 +208,7 @@ class Loop:
                 if why == ROOM:
                     self._room()
                     if not self.drain.is_alive():  # its error is raised after the run; go on dropping
-                        runs = None
+                        runs = self.runs = None
             while runs is None and k < n_blocks:
                 if k > scheduled:
                     apply_schedule(k)
@@ -234,6 +236,9 @@ class Loop:
                     break
         except KeyboardInterrupt:
             interrupted = True
+            if runs is not None:  # what the compiled runs did, even if Ctrl-C cut off their return
+                k = max(k, runs.sync())
+                status_seen |= runs.status_seen
             run_blocks = k
         finally:
             wall = (pace.now_ns(st) - st[pace.START]) * 1e-9 if st[pace.START] else 0.0

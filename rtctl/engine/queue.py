@@ -23,7 +23,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-
 from numba import carray
 
 from .._codegen import fence, voidptr_at
