@@ -112,7 +112,9 @@ class Rig:
             for ev in self.events:
                 self._events_at.setdefault(ev.block, []).append(ev)
         self.stages = self._stages()
-        self._busy = None  # next_busy's sorted blocks, found on first use
+        # the blocks at which apply_schedule has work, sorted (None: any block may; next_busy)
+        busy = self.stimulus.busy_blocks()
+        self._busy = None if busy is None else np.array(sorted(set(busy) | set(self._events_at)), dtype=np.int64)
         self.blocks = 0  # blocks the block function has run since the last reset
         self._compile()
         from .state import scene_digest, state_arrays
@@ -408,12 +410,7 @@ class Rig:
     def next_busy(self, k: int) -> int:
         """The first block after ``k`` at which :meth:`apply_schedule` may have work (a large
         number when none will): the blocks between need nothing from Python."""
-        if self._busy is None:
-            busy = self.stimulus.busy_blocks()
-            if busy is not None:
-                busy = np.array(sorted(set(busy) | set(self._events_at)), dtype=np.int64)
-            self._busy = (busy,)
-        busy = self._busy[0]
+        busy = self._busy
         if busy is None:
             return k + 1
         i = int(np.searchsorted(busy, k, side="right"))
