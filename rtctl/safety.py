@@ -90,6 +90,8 @@ _V, _T, _FADE_FROM, _MEAN_P, _MEAN_N = range(5)
 #: kinds of running-mean bound (``_MKIND``): none, a piezo's DC offset, an SMA spring's duty
 #: (heating power), an SMA spring's duty behind a pin controller (commanded time)
 MEAN_OFF, MEAN_DC, MEAN_DUTY, MEAN_DUTY_CMD = 0, 1, 2, 3
+#: :func:`_mean_stage`'s private bit: it rewrote the block (the caller sums it again)
+_ROW_LOWERED = 1 << 30
 _MAX_ROOT_STEPS = 200  # of the ceiling's root search; 25 bisections alone reach its tolerance
 
 
@@ -199,6 +201,12 @@ def limit_block(x, state, params, fade, counts):
     fading = fade[1] > 0
     hard = fading and fade[2] == FADE_LINEAR
     status = 0
+    # One-pole factors 1 - exp(-n alpha): channels usually share alpha, so each is computed
+    # again only when alpha differs from the previous channel's (same input, same value).
+    al_th = math.nan
+    a_th = 0.0
+    al_m = math.nan
+    a_m = 0.0
     for c in range(n_ch):
         row = x[c]
         vmax = params[_VMAX, c]
@@ -212,9 +220,23 @@ def limit_block(x, state, params, fade, counts):
         else:
             # v * 0 is 0 for finite v and NaN for NaN/Inf: one vectorizable probe instead of a
             # branch per sample (a per-sample isfinite stops LLVM vectorizing the loop).
-            probe = 0.0
-            for i in range(n):
-                probe += row[i] * 0.0
+            # Four accumulators: each term is 0 or NaN, so any order gives the same verdict,
+            # and four short chains instead of one of n dependent adds (latency-bound).
+            p0 = 0.0
+            p1 = 0.0
+            p2 = 0.0
+            p3 = 0.0
+            i = 0
+            while i + 4 <= n:
+                p0 += row[i] * 0.0
+                p1 += row[i + 1] * 0.0
+                p2 += row[i + 2] * 0.0
+                p3 += row[i + 3] * 0.0
+                i += 4
+            while i < n:
+                p0 += row[i] * 0.0
+                i += 1
+            probe = (p0 + p1) + (p2 + p3)
             if probe != 0.0:
                 status |= NONFINITE
                 for i in range(n):
@@ -225,17 +247,36 @@ def limit_block(x, state, params, fade, counts):
                 for i in range(n):
                     k = fade[0] + i + 1
                     row[i] *= 0.5 * (1.0 + math.cos(w * k)) if k < fade[1] else 0.0
+        # Voltage clip and the largest step in one pass; the maximum is exact in any order, so
+        # even and odd samples keep a running maximum each (two chains of n / 2).
         n_v = 0
-        for i in range(n):
+        s0 = 0.0
+        s1 = 0.0
+        prev = v0
+        i = 0
+        while i + 2 <= n:
+            v = row[i]
+            w = row[i + 1]
+            n_v += (v > vmax) | (v < -vmax)
+            n_v += (w > vmax) | (w < -vmax)
+            cv = min(max(v, -vmax), vmax)
+            cw = min(max(w, -vmax), vmax)
+            row[i] = cv
+            row[i + 1] = cw
+            s0 = max(s0, abs(cv - prev))
+            s1 = max(s1, abs(cw - cv))
+            prev = cw
+            i += 2
+        if i < n:
             v = row[i]
             n_v += (v > vmax) | (v < -vmax)
-            row[i] = min(max(v, -vmax), vmax)
+            cv = min(max(v, -vmax), vmax)
+            row[i] = cv
+            s0 = max(s0, abs(cv - prev))
         if n_v:
             counts[0, c] += n_v
             status |= LIMIT_VOLTAGE
-        step = abs(row[0] - v0)
-        for i in range(1, n):
-            step = max(step, abs(row[i] - row[i - 1]))
+        step = max(s0, s1)
         if step > dvmax:
             n_s = 0
             prev = v0
@@ -249,18 +290,44 @@ def limit_block(x, state, params, fade, counts):
             if n_s:
                 counts[1, c] += n_s
                 status |= LIMIT_SLEW
+        # The block's sum (for a DC bound), heat and Joule sums in one pass: three independent
+        # chains, each summed in sample order as before. Recomputed only if the mean stage
+        # lowered the block.
         kind = params[_MKIND, c]
-        if kind != MEAN_OFF:
-            status |= _mean_stage(row, state, params, counts, c, v0, dvmax, vmax, kind, hard)
+        bsum = row[0]
         heat = abs(row[0] * (row[0] - v0))
         joule = row[0] * row[0]
         for i in range(1, n):
+            bsum += row[i]
             heat += abs(row[i] * (row[i] - row[i - 1]))
             joule += row[i] * row[i]
+        if kind != MEAN_OFF:
+            if params[_MALPHA, c] != al_m:
+                al_m = params[_MALPHA, c]
+                a_m = -math.expm1(-n * al_m)
+            ms = 0
+            if kind == MEAN_DC:  # the usual case, the mean within its bound, without a call
+                m = state[_MEAN_P, c]
+                new = m + a_m * (bsum / n - m)
+                if abs(new) > params[_MBOUND, c] and not hard:
+                    ms = _mean_stage(row, state, params, counts, c, v0, dvmax, vmax, kind, hard, bsum, a_m)
+                else:
+                    state[_MEAN_P, c] = new
+            else:
+                ms = _mean_stage(row, state, params, counts, c, v0, dvmax, vmax, kind, hard, bsum, a_m)
+            if ms & _ROW_LOWERED:
+                heat = abs(row[0] * (row[0] - v0))
+                joule = row[0] * row[0]
+                for i in range(1, n):
+                    heat += abs(row[i] * (row[i] - row[i - 1]))
+                    joule += row[i] * row[i]
+            status |= ms & ~_ROW_LOWERED
         power = (params[_HEAT, c] * heat + params[_JOULE, c] * joule) / n
-        a = -math.expm1(-n * params[_ALPHA, c])
+        if params[_ALPHA, c] != al_th:
+            al_th = params[_ALPHA, c]
+            a_th = -math.expm1(-n * al_th)
         t = state[_T, c]
-        t += a * (params[_TAMB, c] + params[_RTH, c] * power - t)
+        t += a_th * (params[_TAMB, c] + params[_RTH, c] * power - t)
         state[_T, c] = t
         state[_V, c] = row[n - 1]
         if t > params[_TMAX, c]:
@@ -271,28 +338,25 @@ def limit_block(x, state, params, fade, counts):
 
 
 @kernel
-def _mean_stage(row, state, params, counts, c, v0, dvmax, vmax, kind, fading):
+def _mean_stage(row, state, params, counts, c, v0, dvmax, vmax, kind, fading, bsum, a):
     """Step (4) of :func:`limit_block` for channel ``c``: ``m <- m + A (b - m)`` with ``b`` the
     block's measure and ``A = 1 - exp(-n / (fs tau))`` (the exact one-pole over a block whose
     measure is held), kept within the bound: a block that would carry ``m`` past it is lowered
     to the measure ``g + (D - g) / A`` that puts ``m`` exactly on it. A shutdown fade is never
     changed (the fade goes to 0 V, which only ever brings a mean back); its blocks still count."""
-    n = row.shape[0]
-    a = -math.expm1(-n * params[_MALPHA, c])
+    n = row.shape[0]  # ``a`` = -expm1(-n params[_MALPHA, c]), from the caller
     bound = params[_MBOUND, c]
     scale = params[_MSCALE, c]
     status = 0
     if kind == MEAN_DC:
-        b = 0.0
-        for i in range(n):
-            b += row[i]
-        b /= n
+        b = bsum / n  # the caller's sum of the row (0.0 + row[0] + ... in that order)
         m = state[_MEAN_P, c]
         new = m + a * (b - m)
         if abs(new) > bound and not fading:
             sign = 1.0 if new > 0.0 else -1.0
             g = sign * m
             changed = _bound_mean(row, v0, dvmax, vmax, sign, kind, 1.0, 0.0, g + (bound - g) / a)
+            status |= _ROW_LOWERED
             if changed:
                 counts[2, c] += changed
                 status |= LIMIT_DC
@@ -327,6 +391,7 @@ def _mean_stage(row, state, params, counts, c, v0, dvmax, vmax, kind, fading):
         if new > bound and not fading:
             sign = 1.0 if r == 0 else -1.0
             changed = _bound_mean(row, v0, dvmax, vmax, sign, kind, scale, h_cmd, g + (bound - g) / a)
+            status |= _ROW_LOWERED
             if changed:
                 counts[2, c] += changed
                 status |= LIMIT_DUTY
