@@ -436,6 +436,7 @@ def test_c_callback_gives_the_python_callbacks_blocks(observe, monkeypatch):
     assert be_p._cfunc is None and be_p.stats()["cfunc_note"].startswith("off")
     rng = np.random.default_rng(1)
     n_in, n_out = be_c._n_in, be_c._n_out
+    fade_end = None
     for k in range(60):
         frames = rng.normal(0, 1e-3, (BLOCK, n_in))
         ind_c, a = sd_array(BLOCK, n_in, frames)
@@ -447,6 +448,8 @@ def test_c_callback_gives_the_python_callbacks_blocks(observe, monkeypatch):
             be_c.ctl[K.STOP_REQ] = be_p.ctl[K.STOP_REQ] = 1
         assert c_call(be_c, ind_c, out_c, flags) == K.PA_CONTINUE
         be_p._callback(ind_p, out_p, BLOCK, None, sd.CallbackFlags(flags))
+        if rig_p.limiter.done and fade_end is None:
+            fade_end = k + 1
         np.testing.assert_allclose(out_c, out_p, rtol=1e-6, atol=1e-9)
         slot = k % be_c.snaps.n
         for f in ("out", "sensed", "estimated", "temperature"):
@@ -455,6 +458,8 @@ def test_c_callback_gives_the_python_callbacks_blocks(observe, monkeypatch):
         assert be_c.snaps.status[slot] == be_p.snaps.status[slot]
     assert np.max(np.abs(be_c.snaps.out[25])) > 10  # it played, then faded
     assert rig_c.limiter.done and rig_p.limiter.done
+    # both mark the block in which the fade reached 0 V, the first after which the limiter is done
+    assert be_c.ctl[K.FADE_END] == be_p.ctl[K.FADE_END] == fade_end
     sc_, sp = be_c.stats(), be_p.stats()
     for key in ("blocks", "input_overflow", "output_underflow", "xruns", "first_xrun_block", "clipped_samples"):
         assert sc_[key] == sp[key], key
@@ -534,3 +539,45 @@ def test_ctrl_c_fades_delivers_each_block_once_and_reraises():
     ks = [k for k, _ in got]
     assert ks == list(range(len(ks))) and 31 < len(ks) < 60
     assert rig.limiter.done and np.all(got[-1][1][:, -1] == 0.0)
+
+
+class LingeringRig(TinyRig):
+    """Its step lingers (the GIL released, as in a nogil kernel) in the block where the
+    limiter's fade has just reached 0 V: the engine thread then sees the limiter done while that
+    block is not yet counted, every time, instead of on a rare unlucky schedule."""
+
+    def step(self):
+        st = super().step()
+        if self.limiter.done and not getattr(self, "lingered", False):
+            self.lingered = True
+            time.sleep(0.02)  # 15 blocks: the engine thread polls many times meanwhile
+        return st
+
+
+@pytest.mark.parametrize("how", ["ctrl-c", "on_block", "n_blocks"])
+def test_the_fade_block_is_delivered_though_the_limiter_is_done_before_the_block_is_counted(how):
+    be = backend(FakeSD())
+    rig = LingeringRig()
+    be._out, be._sensed = rig.out, rig.sensed
+    be.compile()
+    got = []
+
+    def on_block(k, slot):
+        got.append((k, be.snaps.out[slot].copy()))
+        if how == "ctrl-c" and k == 30:
+            raise KeyboardInterrupt
+        return how == "on_block" and k == 30
+
+    if how == "ctrl-c":
+        with pytest.raises(KeyboardInterrupt):
+            be.run(rig, 10_000, on_block)
+    else:
+        be.run(rig, 31 if how == "n_blocks" else 10_000, on_block)
+    ks = [k for k, _ in got]
+    assert rig.lingered and ks == list(range(len(ks))) and len(ks) > 31
+    assert np.max(np.abs(got[30][1])) > 50  # still playing at the stop
+    # the block that ended the fade was delivered (ending at 0 V); any later one is silent
+    end = int(be.ctl[K.FADE_END])
+    assert 31 < end <= len(ks) and rig.limiter.done
+    assert np.all(got[end - 1][1][:, -1] == 0.0) and np.any(got[end - 1][1])
+    assert not any(np.any(out) for _, out in got[end:])

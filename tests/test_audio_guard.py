@@ -77,3 +77,39 @@ def test_a_fault_from_the_block_step_starts_the_fade_in_the_device_thread():
 
     assert guard(ctl, lim, np.zeros((1, BLOCK)), np.zeros((2, BLOCK)), NONFINITE) == 0
     assert ctl[K.STOP_BEGUN] == 1 and lim.fade[1] > 0
+
+
+def test_the_block_that_ends_a_stop_fade_is_marked_when_the_limiter_is_done():
+    """``ctl[FADE_END]`` = the blocks counted once ``Limiter.done`` turned true in a block, for a
+    requested stop's raised cosine over several blocks and for a fault's one-block fade; never
+    before, never without a stop, and not moved by later blocks."""
+    rng = np.random.default_rng(5)
+    sensed = np.full((1, BLOCK), 1e-6)
+    for smooth, fade_blocks in ((True, 3.5), (False, 1)):
+        ctl, lim = setup()
+        for k in range(40):
+            x = rng.uniform(-80, 80, (2, BLOCK))
+            if k == 10:
+                ctl[K.STOP_BEGUN] = 1  # what the callback does on a stop request
+                K.limiter_shutdown(*lim.args[:3], int(fade_blocks * BLOCK), smooth)
+            was_done = lim.done
+            lim.process(x)
+            guard(ctl, lim, sensed, x)
+            if lim.done and not was_done:
+                want = k + 1
+            assert ctl[K.FADE_END] == (want if lim.done else 0), (smooth, k)
+            ctl[K.DONE] += 1  # the callback counts the block after the guard
+        assert ctl[K.FADE_END] == 10 + int(np.ceil(fade_blocks)), smooth
+    ctl, lim = setup()  # a limiter whose fade is done but no stop began in the device thread
+    lim.shutdown(BLOCK)
+    lim.process(np.zeros((2, BLOCK)))
+    assert lim.done and guard(ctl, lim, sensed, np.zeros((2, BLOCK))) == 0 and ctl[K.FADE_END] == 0
+
+
+def test_fade_done_kernel_is_the_limiters():
+    ctl, lim = setup()
+    rng = np.random.default_rng(6)
+    for _ in range(300):
+        lim.fade[:] = rng.integers(0, 4), rng.integers(0, 4), 1
+        lim.state[0] = rng.choice([0.0, -0.0, 1e-300, -3.0, np.nan], 2, p=[0.4, 0.3, 0.1, 0.1, 0.1])
+        assert K.fade_done(lim.state, lim.fade) == lim.done

@@ -124,6 +124,11 @@ def io_guard(ctl, sensed, out, xrun, state, params, fade, block):
     On any fault (these or the block step's, ``step_status``) the shutdown fade starts here, in
     the device thread, so the next block already fades: the engine thread learns of it later.
     ``xrun`` holds the block step's status bits too (the caller ORs them in).
+
+    Called after the step and before the block is counted in ``ctl[DONE]``, it also marks the
+    block in which a stop's fade has reached 0 V (``ctl[FADE_END]``): the engine thread ends the
+    run on that count, never on the limiter's state, which it would see change mid-block (the
+    fade done, the block that did it not yet counted) and so stop one block short.
     """
     st = 0
     if ctl[XRUN_ADD] > 0:
@@ -150,7 +155,21 @@ def io_guard(ctl, sensed, out, xrun, state, params, fade, block):
     if (st | xrun) & FAULTS and (ctl[STOP_BEGUN] == 0 or fade[2] == FADE_COSINE):
         ctl[STOP_BEGUN] = 1
         limiter_shutdown(state, params, fade, block, False)
+    if ctl[FADE_END] == 0 and ctl[STOP_BEGUN] != 0 and fade_done(state, fade):
+        ctl[FADE_END] = ctl[DONE] + 1
     return st
+
+
+@kernel
+def fade_done(state, fade):
+    """:attr:`rtctl.safety.Limiter.done` over the limiter's arrays: a shutdown fade has run its
+    length and every output is at 0 V."""
+    if fade[1] <= 0 or fade[0] < fade[1]:
+        return False
+    for c in range(state.shape[1]):
+        if state[_V, c] != 0.0:
+            return False
+    return True
 
 
 @kernel
@@ -170,10 +189,12 @@ def limiter_shutdown(state, params, fade, n_samples, smooth):
 # --- the C callback (numba cfunc): PortAudio calls it directly, no Python, no GIL -------------
 
 #: Fields of the int64 control array shared by the device thread and the engine thread.
+#: ``FADE_END``: the blocks served up to and including the one in which the stop's fade reached
+#: 0 V (0 until then), written by the device thread before it counts that block in ``DONE``.
 (DONE, BUSY, HALT, FAILED, STOP_REQ, STOP_BEGUN, LAST_NS, IN_UNDER, IN_OVER, OUT_UNDER, OUT_OVER,
  FIRST_XRUN, LATE, CLIPPED, ODD, MAX_GAP, TS_SEC, TS_NSEC, STOP_AT,
- XRUN_LEVEL, XRUN_ADD, XRUN_LEAK, XRUN_CAP, LIVE, SILENT, SILENT_LIMIT, GUARD) = range(27)
-N_CTL = 27
+ XRUN_LEVEL, XRUN_ADD, XRUN_LEAK, XRUN_CAP, LIVE, SILENT, SILENT_LIMIT, GUARD, FADE_END) = range(28)
+N_CTL = 28
 #: ``ctl[GUARD]``: which guard ended the run
 GUARD_SILENT, GUARD_XRUNS = 1, 2
 PA_CONTINUE, PA_ABORT = 0, 2  # paContinue, paAbort

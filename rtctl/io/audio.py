@@ -452,11 +452,13 @@ class AudioBackend(Backend):
                         # trails the device's), so feedback does not answer the release
                         held = True
                         getattr(rig, "hold_control", lambda: None)()
-                    if end is None and ctl[K.STOP_BEGUN] and rig.limiter.done:
-                        # the fade's last block is among these; after a requested stop's fade the
-                        # device runs on silent until the model's tips have settled
-                        end = int(ctl[K.DONE]) + (int(getattr(rig, "settle_blocks", 0))
-                                                  if rig.limiter.smooth_stop else 0)
+                    if end is None and ctl[K.FADE_END]:
+                        # the device thread counted the fade's last block (not rig.limiter.done:
+                        # that turns true inside the block's step, before ctl[DONE] counts the
+                        # block); after a requested stop's fade the device runs on silent until
+                        # the model's tips have settled
+                        end = int(ctl[K.FADE_END]) + (int(getattr(rig, "settle_blocks", 0))
+                                                      if rig.limiter.smooth_stop else 0)
                     if end is not None and k_read >= end:
                         break
                     why = self._lost(t_start)
@@ -542,7 +544,7 @@ class AudioBackend(Backend):
         if not (ctl[K.FAILED] or self._rig is None):
             ctl[K.STOP_REQ] = 1
             t = time.perf_counter()
-            while not (ctl[K.STOP_BEGUN] and self._rig.limiter.done) and time.perf_counter() - t < 0.5:
+            while not (ctl[K.FADE_END] and ctl[K.DONE] >= ctl[K.FADE_END]) and time.perf_counter() - t < 0.5:
                 if not s.active:
                     break
                 time.sleep(0.002)
