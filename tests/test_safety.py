@@ -52,6 +52,55 @@ def test_kernel_matches_naive_twin_with_time_constants_differing_between_channel
     np.testing.assert_allclose(lim.state, ref.state, rtol=1e-12)
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_kernel_matches_naive_twin_through_stops_fades_and_silent_blocks(seed):
+    """Runs that stop: a requested stop's raised cosine or a fault's linear fade begun at a
+    random block, its length no multiple of the block (it ends mid-block), a fault cutting a
+    raised cosine short, all-zero blocks before, during and after the fade, NaN/Inf requests
+    and DC offsets the bound acts on; time constants shared by neighbours or not. Every block:
+    status, samples, the fade's progress and ``done`` against the twin, which computes every
+    one-pole factor and sum per channel and clamps sample by sample."""
+    rng = np.random.default_rng(100 + seed)
+    n_ch, block = 6, (1, 5, 32, 33, 32, 64)[seed]
+    kw = dict(slew=rng.choice([3e4, 2e6], n_ch), current=1e-2, thermal_tau=rng.choice([1.0, 20.0], n_ch),
+              dc_offset=[3.0, 8.0, np.inf, 3.0, 8.0, 3.0], dc_tau=rng.choice([0.002, 0.01], n_ch))
+    lim, ref = make(n_ch, **kw), make(n_ch, **kw)
+    n_blocks = max(24, 1200 // block)
+    stop_at = int(rng.integers(n_blocks // 2, 3 * n_blocks // 4))
+    cut_at = stop_at + 2 if seed % 3 == 2 else -1  # a fault during the raised cosine
+    smooth = seed % 2 == 0 or cut_at > 0
+    offset = np.array([40.0, -40.0, 40.0, 40.0, -40.0, 0.0])  # held: the running means climb to their bounds
+    seen_done = False
+    for k in range(n_blocks):
+        kind = rng.integers(4)
+        if kind == 0:
+            x = np.zeros((n_ch, block))
+        else:
+            x = rng.normal(offset[:, None], 60.0, (n_ch, block))
+            if kind == 1:
+                x[rng.random(x.shape) < 0.05] = rng.choice([np.nan, np.inf, -np.inf])
+            if kind == 2:
+                x[rng.integers(n_ch)] = 0.0  # one silent channel among driven ones
+        if k == stop_at:
+            length = int(rng.integers(1, 4 * block + 2))
+            assert lim.shutdown(length, smooth) == ref.shutdown(length, smooth)
+        if k == cut_at:
+            assert lim.shutdown(block, False) == ref.shutdown(block, False)
+        y = x.copy()
+        assert lim.process(x) == naive_loop.limit_block(y, *ref.args), k
+        # where the DC bound lowers a block, the ceiling's root search stops within 1e-13 vmax
+        # (1e-11 V) and the twin's brentq elsewhere: the tolerances of the mean bounds' twin test
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-9, err_msg=str(k))
+        np.testing.assert_array_equal(lim.fade, ref.fade)
+        np.testing.assert_array_equal(lim.counts, ref.counts)
+        np.testing.assert_allclose(lim.state, ref.state, rtol=1e-9, atol=1e-9, err_msg=str(k))
+        assert lim.done == ref.done, k
+        seen_done |= lim.done
+        if lim.done:
+            assert not np.any(x[:, -1])
+    assert seen_done and lim.counts[2].sum() > 0  # the fade ended and the DC bound acted
+
+
 def test_nan_and_inf_become_zero_and_raise_the_fault_bit():
     lim = make(1)
     x = np.array([[np.nan, np.inf, -np.inf]])
