@@ -6,7 +6,9 @@ window per channel, least squares), runs them into steady state, then calls the 
 stage's kernel on its own arguments from a compiled loop (no dispatch per call): median over
 repeats of the mean time per call. ``--parts`` times the pieces the stage is made of the same
 way: the two lock-ins split into demodulation, oscillator bookkeeping, hop and estimate, then
-the observer products, the tip waveform and the amplitudes.
+the observer products, the tip waveform and the amplitudes. The stage is timed against its
+reference twin (``tests/twin_observer.py``, the kernels before they were rewritten for speed),
+alternating in this process; the parts are the twin's.
 
     python bench/observer.py [--channels 1,16,48,128] [--parts] [--calls 2000] [--repeats 15]
 """
@@ -23,9 +25,12 @@ from numba import njit
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))
+
+import twin_observer as dk  # noqa: E402  (the kernels before the rewrite: the parts are timed there)
 from loop import scene_for  # noqa: E402
 
-from rtctl.dsp import _kernels as dk  # noqa: E402
+from rtctl.dsp import _kernels as osc  # noqa: E402
 from rtctl.selfsense.stage import observe_stage  # noqa: E402
 
 
@@ -36,6 +41,16 @@ def rep_stage(n, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14
     for _ in range(n):
         s |= observe_stage(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18,
                            a19, a20, a21, a22)
+    return s
+
+
+@njit(cache=True)
+def rep_twin(n, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18, a19,
+             a20, a21, a22):
+    s = 0
+    for _ in range(n):
+        s |= dk.observe_stage(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18,
+                              a19, a20, a21, a22)
     return s
 
 
@@ -55,7 +70,7 @@ def rep_demod(n, ref, chan, acc, x):
 @njit(cache=True)
 def rep_advance(n, ref, m):
     for _ in range(n):
-        dk._osc_advance(ref, m)
+        osc._osc_advance(ref, m)
 
 
 @njit(cache=True)
@@ -103,7 +118,7 @@ def rep_products(n, u_acc, i_acc, H, scale, est):
 
 @njit(cache=True)
 def rep_wave(n, u_ref, est, wave):
-    ZR, ZI, WR, WI = dk.ZR, dk.ZI, dk.WR, dk.WI
+    ZR, ZI, WR, WI = osc.ZR, osc.ZI, osc.WR, osc.WI
     for _ in range(n):
         n_ch, n_t = est.shape[0], est.shape[1]
         m = wave.shape[1]
@@ -173,8 +188,29 @@ def timed(fn, args, calls, repeats):
     return 1e6 * float(np.median(ts))
 
 
-def parts(st, calls, repeats):
+def twin_args(st):
+    """The stage's arguments, copied, for the twin (whose scratch slot held the currents' outputs)."""
     a = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in st.args.items()}  # the rig keeps its own
+    a["back"] = np.zeros((a["i_acc"].shape[1] // a["est"].shape[1], a["est"].shape[1], 2))
+    return a
+
+
+def alternate(st, calls, repeats):
+    """(old, new) us per block: the twin and the package's stage, alternating, medians."""
+    old, new = tuple(twin_args(st).values()), tuple(st.args.values())
+    rep_twin(2, *old)
+    rep_stage(2, *new)
+    to, tn = [], []
+    for _ in range(repeats):
+        for fn, args, ts in ((rep_twin, old, to), (rep_stage, new, tn)):
+            t = time.perf_counter()
+            fn(calls, *args)
+            ts.append((time.perf_counter() - t) / calls)
+    return 1e6 * float(np.median(to)), 1e6 * float(np.median(tn))
+
+
+def parts(st, calls, repeats):
+    a = twin_args(st)
     u = [a[k] for k in ("u_ref", "u_pend", "u_chan", "u_acc", "u_ring", "u_solve")]
     i = [a[k] for k in ("i_ref", "i_pend", "i_chan", "i_acc", "i_ring", "i_solve")]
     drive, sensed = a["delay"][0], a["sensed"]
@@ -207,10 +243,10 @@ def main(argv=None) -> int:
     for n_ch in (int(x) for x in a.channels.split(",")):
         for closed in (False, True):
             _, st = rig_stage(n_ch, closed)
-            us = timed(rep_stage, tuple(st.args.values()), a.calls, a.repeats)
-            cyc = us * 1e3 * f / (n_ch * 32)
-            print(f"{n_ch:4d} ch {'closed ' if closed else 'observe'}: stage {us:7.2f} us/block, "
-                  f"{cyc:5.1f} cycles per channel-sample")
+            old, new = alternate(st, a.calls, a.repeats)
+            cyc = 1e3 * f / (n_ch * 32)
+            print(f"{n_ch:4d} ch {'closed ' if closed else 'observe'}: stage {old:7.2f} -> {new:7.2f} us/block "
+                  f"(x{old / new:4.2f}), {old * cyc:5.1f} -> {new * cyc:5.1f} cycles per channel-sample")
             if a.parts:
                 for k, v in parts(st, a.calls, a.repeats).items():
                     print(f"      {k:24s} {v:7.2f} us  {v * 1e3 * f / (n_ch * 32):6.1f} cyc/ch-sample")
