@@ -514,17 +514,23 @@ def _lockin_solve(acc, solve, s):
 
 
 @kernel
-def _lockin_estimate(ref, acc, solve):
-    """Amplitude and phase of every slot from its window sum (once per call, not per hop); the
-    scale is one per run of slots with equal windows, as in :func:`_lockin_hop`. A slot whose
-    row is solved by least squares (``LSQ``) reads its solved sum, every other its plain one."""
-    ns = acc.shape[1]
-    for s in range(ns):
+def _lockin_sums_out(acc, solve):
+    """The window sum each slot's estimate is made of (``X``): for a slot whose row is solved by
+    least squares (``LSQ``) its solved sum, for every other its plain one."""
+    for s in range(acc.shape[1]):
         if acc[LSQ, s] != 0.0:
             _lockin_solve(acc, solve, s)
         else:
             acc[X_R, s] = acc[S_R, s]
             acc[X_I, s] = acc[S_I, s]
+
+
+@kernel
+def _lockin_estimate(ref, acc):
+    """Amplitude and phase of every slot from the window sum its estimate is made of
+    (:func:`_lockin_sums_out`; once per call, not per hop); the scale is one per run of slots with
+    equal windows, as in :func:`_lockin_hop`."""
+    ns = acc.shape[1]
     s0 = 0
     while s0 < ns:
         nh = acc[NHOP, s0]
@@ -566,9 +572,26 @@ def lockin_process(ref, pending, chan, acc, ring, solve, x, out):
     out : ndarray, shape (n_channels, n_freq, 2), float64
         Amplitude (peak) and phase (rad) at the last complete hop; NaN for unused slots.
     """
+    if ref.shape[1] == 0:
+        return
+    if lockin_sums(ref, pending, chan, acc, ring, solve, x):
+        _lockin_estimate(ref, acc)
+    n_freq = out.shape[1]
+    for r in range(out.shape[0]):
+        for k in range(n_freq):
+            out[r, k, 0] = acc[EST_A, r * n_freq + k]
+            out[r, k, 1] = acc[EST_P, r * n_freq + k]
+
+
+@kernel
+def lockin_sums(ref, pending, chan, acc, ring, solve, x):
+    """:func:`lockin_process` without amplitude and phase, for a caller that reads only the window
+    sums: ``acc[X_R]``, ``acc[X_I]`` (and ``acc[Z_R]``, ``acc[Z_I]``) are updated as there,
+    ``acc[EST_A]``, ``acc[EST_P]`` are left as they were (a ``hypot`` and an ``atan2`` per slot and
+    call saved). Returns whether a hop closed in this call (the sums then changed)."""
     ns = ref.shape[1]
     if ns == 0:
-        return
+        return False
     for s in range(ns):
         if pending[P_FLAG, s] != 0.0 and not (pending[P_FREQ, s] > 0.0):
             pending[P_FREQ, s] = 0.0  # unused: a still reference costs nothing and reads NaN
@@ -588,11 +611,8 @@ def lockin_process(ref, pending, chan, acc, ring, solve, x, out):
             closed = True
         t += m
     if closed:
-        _lockin_estimate(ref, acc, solve)
-    n_freq = out.shape[1]
-    for s in range(ns):
-        out[s // n_freq, s % n_freq, 0] = acc[EST_A, s]
-        out[s // n_freq, s % n_freq, 1] = acc[EST_P, s]
+        _lockin_sums_out(acc, solve)
+    return closed
 
 
 # ---- pulse trains ----------------------------------------------------------------------------

@@ -13,12 +13,14 @@ STATUS_NONFINITE = 4
 
 _ZR, _ZI, _WR, _WI = _dk.ZR, _dk.ZI, _dk.WR, _dk.WI
 _XR, _XI = _dk.X_R, _dk.X_I  # the window sums the lock-ins' estimates are made of
-_lockin = _dk.lockin_process
+# Fewest slots for which the waveform is rebuilt with the slots innermost (as vector lanes): the
+# crossover measured against one chain per slot (bench/observer.py's parts, 1-48 slots)
+_LANES = 8
 
 
 @kernel
 def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring,
-                     i_solve, u_out, i_out, H, scale, est, wave, drive, sensed):
+                     i_solve, u_out, back, H, scale, est, wave, drive, sensed):
     """One block: demodulate drive and currents, apply the observer, rebuild the tip waveform.
 
     Parameters
@@ -27,9 +29,12 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
         Lock-in of the drive (``LockIn.args``), slots ``(n_ch, n_tones)``.
     i_ref, i_pend, i_chan, i_acc, i_ring, i_solve : ndarray
         Lock-in of the sensed currents, rows ``ch * n_seg + seg``, slots ``(n_ch * n_seg, n_tones)``;
-        each row's window that of its channel in the drive's lock-in.
-    u_out, i_out : ndarray, shapes (n_ch, n_tones, 2) and (n_ch * n_seg, n_tones, 2)
-        Scratch for the lock-ins' amplitude/phase outputs.
+        each row's window that of its channel in the drive's lock-in. Only its window sums are
+        kept (``lockin_sums``): its amplitudes and phases are not computed.
+    u_out : ndarray, shape (n_ch, n_tones, 2)
+        Written: the drive lock-in's amplitude/phase outputs.
+    back : ndarray, shape (4 + n, n_ch * n_tones)
+        Scratch of the waveform rebuild (see :func:`_rebuild`).
     H : ndarray, shape (n_ch, n_tones, n_est, 1 + n_seg, 2)
         Observer matrices (real, imaginary); all zero for an unused tone slot.
     scale : ndarray, shape (n_ch,)
@@ -48,16 +53,13 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     int
         0, or ``STATUS_NONFINITE`` if any estimate is NaN/Inf.
     """
-    _lockin(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out)
-    _lockin(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, sensed, i_out)
+    _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out)
+    _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, sensed)
     n_ch, n_t, n_est = est.shape[0], est.shape[1], est.shape[2]
     n_seg = H.shape[3] - 1
-    n = drive.shape[1]
     status = 0
     for c in range(n_ch):
         sc = scale[c]
-        for s in range(n):
-            wave[c, s] = 0.0
         for k in range(n_t):
             us = c * n_t + k
             dr = sc * u_acc[_XR, us]
@@ -65,30 +67,89 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
             for e in range(n_est):
                 hr = H[c, k, e, 0, 0]
                 hi = H[c, k, e, 0, 1]
-                zr = hr * dr - hi * di
-                zi = hr * di + hi * dr
-                for j in range(n_seg):
-                    js = (c * n_seg + j) * n_t + k
-                    sr = sc * i_acc[_XR, js]
-                    si = sc * i_acc[_XI, js]
+                est[c, k, e, 0] = hr * dr - hi * di
+                est[c, k, e, 1] = hr * di + hi * dr
+            # segment by segment, each current's phasor scaled once; every estimate still sums
+            # drive, then segments in order
+            for j in range(n_seg):
+                js = (c * n_seg + j) * n_t + k
+                sr = sc * i_acc[_XR, js]
+                si = sc * i_acc[_XI, js]
+                for e in range(n_est):
                     hr = H[c, k, e, 1 + j, 0]
                     hi = H[c, k, e, 1 + j, 1]
-                    zr += hr * sr - hi * si
-                    zi += hr * si + hi * sr
-                est[c, k, e, 0] = zr
-                est[c, k, e, 1] = zi
-                if not (np.isfinite(zr) and np.isfinite(zi)):
+                    est[c, k, e, 0] += hr * sr - hi * si
+                    est[c, k, e, 1] += hr * si + hi * sr
+            for e in range(n_est):
+                if not (np.isfinite(est[c, k, e, 0]) and np.isfinite(est[c, k, e, 1])):
                     status |= STATUS_NONFINITE
-            # Rebuild: x[m] = Re(X z[m]); z of the next sample is the reference's (ZR, ZI),
-            # earlier samples step back by the conjugate per-sample rotation (steady tones).
-            xr, xi = est[c, k, 0, 0], est[c, k, 0, 1]
-            if xr == 0.0 and xi == 0.0:
-                continue
-            zr, zi = u_ref[_ZR, us], u_ref[_ZI, us]
-            wr, wi = u_ref[_WR, us], -u_ref[_WI, us]
-            for s in range(n - 1, -1, -1):
+    _rebuild(u_ref, est, back, wave)
+    return status
+
+
+@kernel
+def _rebuild(u_ref, est, back, wave):
+    """Tip deflection on the block's samples from the row-0 estimates: ``x[m] = Re(X z[m])``, with
+    ``z`` of the next sample the reference's (``ZR``, ``ZI``) and earlier samples stepping back by
+    the conjugate per-sample rotation (steady tones).
+
+    Each slot's phasor is a recursion over the samples; run with the slots innermost, the slots'
+    recursions are independent lanes of one vector instead of one dependent chain each. ``back``
+    holds the state: rows 0-1 the phasors, 2-3 the estimates, ``4 + m`` the sample ``m`` of every
+    channel's wave (``wave`` transposed, so that the slot loop writes contiguously), copied into
+    ``wave`` at the end. An estimate of exactly zero (an unused slot) adds zeros: the same wave.
+    Under :data:`_LANES` slots that bookkeeping costs more than the chains (0.39 against 0.12 us
+    for one slot, even at 8), and each slot runs its own chain instead: the same operations.
+    """
+    n_ch, n_t = est.shape[0], est.shape[1]
+    n = wave.shape[1]
+    if n_ch * n_t < _LANES:
+        _rebuild_chains(u_ref, est, wave)
+        return
+    for c in range(n_ch):
+        for k in range(n_t):
+            us = c * n_t + k
+            back[0, us] = u_ref[_ZR, us]
+            back[1, us] = u_ref[_ZI, us]
+            back[2, us] = est[c, k, 0, 0]
+            back[3, us] = est[c, k, 0, 1]
+    for m in range(n):
+        for c in range(n_ch):
+            back[4 + m, c] = 0.0
+    for m in range(n - 1, -1, -1):
+        for k in range(n_t):
+            for c in range(n_ch):
+                us = c * n_t + k
+                zr = back[0, us]
+                zi = back[1, us]
+                wr = u_ref[_WR, us]
+                wi = -u_ref[_WI, us]
                 t = zr * wr - zi * wi
                 zi = zr * wi + zi * wr
                 zr = t
-                wave[c, s] += xr * zr - xi * zi
-    return status
+                back[0, us] = zr
+                back[1, us] = zi
+                back[4 + m, c] += back[2, us] * zr - back[3, us] * zi
+    for c in range(n_ch):
+        for m in range(n):
+            wave[c, m] = back[4 + m, c]
+
+
+@kernel
+def _rebuild_chains(u_ref, est, wave):
+    """:func:`_rebuild` one slot at a time, its samples one dependent chain."""
+    n_ch, n_t = est.shape[0], est.shape[1]
+    n = wave.shape[1]
+    for c in range(n_ch):
+        for m in range(n):
+            wave[c, m] = 0.0
+        for k in range(n_t):
+            us = c * n_t + k
+            xr, xi = est[c, k, 0, 0], est[c, k, 0, 1]
+            zr, zi = u_ref[_ZR, us], u_ref[_ZI, us]
+            wr, wi = u_ref[_WR, us], -u_ref[_WI, us]
+            for m in range(n - 1, -1, -1):
+                t = zr * wr - zi * wi
+                zi = zr * wi + zi * wr
+                zr = t
+                wave[c, m] += xr * zr - xi * zi

@@ -285,12 +285,12 @@ class Observer:
         self.wave = wave
         self.wave[...] = 0.0
         self.u_out = np.zeros((n_ch, n_t, 2))
-        self._i_out = np.zeros((n_ch * n_seg, n_t, 2))
+        self._back = np.zeros((4 + self.block, n_ch * n_t))  # the waveform rebuild's scratch
 
     @property
     def args(self) -> tuple:
         """Kernel arguments: ``observer_process(*args, drive, sensed)``."""
-        return (*self.lock_u.args, *self.lock_i.args, self.u_out, self._i_out, self.H,
+        return (*self.lock_u.args, *self.lock_i.args, self.u_out, self._back, self.H,
                 self.scale, self.est, self.wave)
 
     def process(self, drive, sensed) -> int:
