@@ -10,7 +10,7 @@ import numpy as np
 from rtctl.dsp.lockin import MAX_LSQ_COND, LockIn, lsq_gram
 from rtctl.errors import ModelError
 from rtctl.selfsense import _kernels
-from rtctl.selfsense.observer import EST_NAMES, MAX_COND, N_EST, design
+from rtctl.selfsense.observer import EST_NAMES, MAX_COND, N_EST, design_many
 
 __all__ = ["Observer", "ObserverRows", "observer_process", "short_windows", "tone_window", "tone_windows"]
 
@@ -258,14 +258,15 @@ class Observer:
         self.scale = 2.0 / self.windows
         self.H = np.zeros((n_ch, n_t, N_EST, 1 + n_seg, 2))
         self.cond = np.full((n_ch, n_t), np.nan)
-        cache = {}
+        # one design per distinct frequency, their images solved in one batch (channels on the
+        # same tones share a design)
+        cache = design_many(beam, [fk for fk in f.ravel().tolist() if fk > 0.0], frontend, image_load=image_load,
+                            max_cond=max_cond)
         for c in range(n_ch):
             for k in range(n_t):
                 fk = float(f[c, k])
                 if fk <= 0.0:
                     continue
-                if fk not in cache:
-                    cache[fk] = design(beam, fk, frontend, image_load=image_load, max_cond=max_cond)
                 ob = cache[fk]
                 self.H[c, k, :, :, 0] = ob.H.real
                 self.H[c, k, :, :, 1] = ob.H.imag
