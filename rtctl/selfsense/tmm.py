@@ -67,6 +67,17 @@ N_MODAL = 6
 _zgbsv = scipy.linalg.get_lapack_funcs("gbsv", (np.zeros(1, dtype=complex),))
 
 
+def _band_solve(ab, rhs):
+    """Solve the system of 5 bands each side in ``ab`` (gbsv's storage, 16 rows; overwritten)
+    for ``rhs`` (overwritten), as scipy's solve_banded does, without its checks and copies."""
+    _, _, y, info = _zgbsv(5, 5, ab, rhs, overwrite_ab=True, overwrite_b=True)
+    if info > 0:
+        raise np.linalg.LinAlgError("singular matrix")
+    if info < 0:
+        raise ValueError(f"illegal value in argument {-info} of gbsv")
+    return y
+
+
 @dataclass(frozen=True)
 class Laminate:
     """Per-length properties of a layered piezoelectric section.
@@ -565,9 +576,7 @@ class TMMBeam:
         rhs[r] = np.asarray(tip_moment, dtype=complex) / D[2]
         ab[10, c0 + 3], ab[13, c0] = 1.0, -load * D[0] / D[3]
         rhs[r + 1] = -np.asarray(tip_force, dtype=complex) / D[3]
-        _, _, y, info = _zgbsv(5, 5, ab, rhs, overwrite_ab=True, overwrite_b=True)
-        if info > 0:
-            raise np.linalg.LinAlgError("singular matrix")
+        y = _band_solve(ab, rhs)
         y = y.T.reshape(n_cases, N + 1, 4) * D[None, None, :]
         return x, np.array(seg_nodes), y
 
@@ -647,9 +656,7 @@ class TMMBeam:
             seg_nodes = np.concatenate(([0], np.cumsum(counts)))
             psi = np.empty((m, n + 1), dtype=complex)
             for q in range(m):
-                _, _, y, info = _zgbsv(5, 5, ab[q], rhs[q], overwrite_ab=True, overwrite_b=True)
-                if info > 0:
-                    raise np.linalg.LinAlgError("singular matrix")
+                y = _band_solve(ab[q], rhs[q])
                 psi[q] = y[4 * seg_nodes + 1, 0] * D[1]
             for q, i in enumerate(idx):
                 out[i] = 1j * om[i] * (self.cp * (1.0 + 0j) - self.lam.m_p * np.diff(psi[q]))
