@@ -658,8 +658,8 @@ class TMMBeam:
             for q in range(m):
                 y = _band_solve(ab[q], rhs[q])
                 psi[q] = y[4 * seg_nodes + 1, 0] * D[1]
-            for q, i in enumerate(idx):
-                out[i] = 1j * om[i] * (self.cp * (1.0 + 0j) - self.lam.m_p * np.diff(psi[q]))
+            # j w times the charge: (0 + j w)(a + j b) is (-w b, w a) however it is rounded
+            out[idx] = (1j * om[idx])[:, None] * (self.cp * (1.0 + 0j) - self.lam.m_p * np.diff(psi, axis=1))
         return out
 
     def _ports_kv(self, omega, c):
