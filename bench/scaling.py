@@ -10,7 +10,7 @@ function). Reports the largest channel count that runs at 1.5x real time or more
 on one core) and, per configuration, the CPU time per channel-sample.
 
     python bench/scaling.py [--channels 1,16,64,256,1024] [--modes 2,4,8,12] [--blocks 300]
-                            [--loops open,closed] [--per-channel-upto N] [--json]
+                            [--loops open,closed] [--per-channel-upto N] [--rounds 3] [--json]
 
 ``--per-channel-upto N``: closed-loop configurations of up to N channels are also run with a
 controller stage per channel (tests/per_channel_rig.py, as the rig was before one controller
@@ -39,7 +39,7 @@ def _timed(rig, blocks: int) -> tuple[float, float]:
     return time.thread_time() - c0, time.perf_counter() - w0
 
 
-def measure(channels: int, modes: int, closed: bool, blocks: int, twin: bool = False) -> dict:
+def measure(channels: int, modes: int, closed: bool, blocks: int, twin: bool = False, rounds: int = 3) -> dict:
     """One configuration; ``twin``: also the closed loop with a controller stage per channel
     (tests/per_channel_rig.py, the arrangement before one controller served a group), built
     and timed in this process, its timed stretches interleaved with the rig's."""
@@ -58,11 +58,11 @@ def measure(channels: int, modes: int, closed: bool, blocks: int, twin: bool = F
         for _ in range(20):
             rig.advance()
     cpu, wall = [0.0] * len(rigs), [0.0] * len(rigs)
-    for _ in range(3):  # interleaved: both see the same machine load
-        for i, rig in enumerate(rigs):
-            c, w = _timed(rig, -(-blocks // 3))
+    for k in range(rounds):  # interleaved, the order alternating: both see the same machine load
+        for i in (range(len(rigs)) if k % 2 == 0 else reversed(range(len(rigs)))):
+            c, w = _timed(rigs[i], -(-blocks // rounds))
             cpu[i], wall[i] = cpu[i] + c, wall[i] + w
-    sim = 3 * -(-blocks // 3) * BLOCK / FS
+    sim = rounds * -(-blocks // rounds) * BLOCK / FS
     out = {"channels": channels, "modes": modes, "closed": closed, "cpu_rtf": sim / cpu[0], "wall_rtf": sim / wall[0],
            "ns_per_channel_sample": 1e9 * cpu[0] / (sim * FS * channels), "build_s": builds[0],
            "states_per_channel": int(rigs[0].device.groups[0][0].n_states)}
@@ -86,6 +86,7 @@ def main(argv=None) -> int:
     ap.add_argument("--loops", default="open,closed", help="which of open, closed to measure")
     ap.add_argument("--per-channel-upto", type=int, default=0,
                     help="closed loop up to this many channels: also a controller per channel, in this process")
+    ap.add_argument("--rounds", type=int, default=3, help="timed stretches per configuration (interleaved)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     loops = [x == "closed" for x in a.loops.split(",")]
@@ -96,7 +97,8 @@ def main(argv=None) -> int:
         for m in modes:
             for c in chans:
                 try:
-                    r = measure(c, m, closed, max(20, a.blocks // max(1, c // 64)), closed and c <= a.per_channel_upto)
+                    r = measure(c, m, closed, max(20, a.blocks // max(1, c // 64)), closed and c <= a.per_channel_upto,
+                                a.rounds)
                 except Exception as e:  # noqa: BLE001 - a configuration the engine cannot build: say which
                     print(f"  {'closed' if closed else 'open  '} modes {m:2d} {c:5d} ch: cannot run "
                           f"({type(e).__name__}: {str(e).splitlines()[0]})", file=sys.stderr, flush=True)
