@@ -2,7 +2,7 @@
 
 With the self-sensing observer off and on (``control.observe``: lock-in of drive and segment
 currents, observer matrices, tip waveform) and in closed loop (``control.mode = "closed"``: the
-group's one observer stage with a lock-in window per channel, and a controller per channel), for
+group's one observer stage with a lock-in window per channel, and its one controller stage), for
 1, 16, 48 and 128 bimorph channels (the demo scene's beam: 4 modes, 3-branch finger, amplifier,
 2-segment current sense; one tone per channel) at blocks of 16, 32, 64 and 256 samples at 48 kHz,
 times ``Rig.advance`` (read, ``@njit`` step, write: everything the loop does per block except the
@@ -151,7 +151,7 @@ def main(argv=None) -> int:
     for c, b in configs:
         rig = build(scene_for(c, b))
         obs_rig = build(scene_for(c, b, observe=True))
-        cl_rig = build(scene_for(c, b, closed=True))  # observer (a window per channel) + controllers
+        cl_rig = build(scene_for(c, b, closed=True))  # observer (a window per channel) + controller
         for r in (rig, obs_rig, cl_rig):
             r.apply_schedule(0)  # every tone (every controller) on from the first block
         # interleaved, so all see the same machine load; mean RTF, worst p99

@@ -40,17 +40,78 @@ def test_closed_loop_settles_within_five_periods_or_50_ms(closed):
         assert rows[name]["settle_ms"] <= 1e3 * max(5 / f, 0.05), rows[name]
 
 
-def test_open_loop_compiles_no_controller_closed_loop_one_per_channel():
+def test_open_loop_compiles_no_controller_closed_loop_one_per_group():
     ol = [s.name for s in build(scene.load("line-bimorph-5", ["timing.duration=0.01"])).stages]
     assert not any(n.startswith(("control", "observer")) for n in ol)
-    cl = [s.name for s in build(scene.load("line-bimorph-5", ["control.mode=closed"])).stages]
-    assert [n for n in cl if n.startswith("control")] == [f"control lateral.{i}" for i in range(5)]
-    # one observer for the group (each channel's window its own: tests/test_rig_observer.py), every
-    # controller after it and all of them after the limiter
+    rig = build(scene.load("line-bimorph-5", ["control.mode=closed"]))
+    cl = [s.name for s in rig.stages]
+    # one observer for the group (each channel's window its own: tests/test_rig_observer.py), one
+    # controller right after it, both after the limiter
+    assert [n for n in cl if n.startswith("control")] == ["control lateral"]
     assert [n for n in cl if n.startswith("observer")] == ["observer lateral"]
-    assert cl.index("limiter") < cl.index("observer lateral") < cl.index("control lateral.0")
-    assert cl[cl.index("observer lateral") + 1:cl.index("control lateral.4") + 1] == [
-        f"control lateral.{i}" for i in range(5)]
+    assert cl.index("limiter") < cl.index("observer lateral") == cl.index("control lateral") - 1
+    # its columns: every tone of every channel, each reading its own channel's row of the group
+    (_, st, ctl), = rig.controllers
+    from rtctl.control._kernels import CHANNEL, OBS_CH
+
+    assert st is rig.observer_stages[0][1] and ctl.n == 5
+    assert ctl.index[OBS_CH].tolist() == ctl.index[CHANNEL].tolist() == list(range(5))
+
+
+#: Four channels whose tones have four windows (80 Hz: 600 samples, 19 blocks; 235 + 265 Hz by
+#: least squares: 1600, 50 blocks, two columns of one channel; 120 Hz: 800, 25; 40 Hz: 2400, 75),
+#: the finger pressing, lifting and returning, and a target stepped by an event
+TWIN = ("line-bimorph-5-closed", [
+    "actuator.lateral.grid=[1, 4]", "timing.duration=0.9",
+    "stimulus.tones=[{channel = 0, freq = 80, voltage = 1.0, target_um = 6.0}, "
+    "{channel = 1, freq = 250, beat = 30, voltage = 1.0, target_um = 6.6}, "
+    "{channel = 2, freq = 120, voltage = 1.0, target_um = 3.0}, "
+    "{channel = 3, freq = 40, voltage = 1.0, target_um = 4.0}]",
+    'events=[{at = 0.3, set = {"finger.preload" = 1.96}}, {at = 0.45, set = {"stimulus.tones.2.target_um" = 5.0}}, '
+    '{at = 0.6, set = {"finger.contact" = false}}, {at = 0.75, set = {"finger.contact" = true}}]'])
+
+
+def test_one_controller_per_group_runs_as_a_controller_per_channel_bitwise(tmp_path):
+    """The group's one controller against the reference twin (tests/per_channel_rig.py: a
+    controller stage per channel on views of the group's observer, as the rig once was): the
+    same trace bitwise, the same summary, channels with different windows and a beat pair."""
+    import json
+
+    from per_channel_rig import PerChannelRig
+
+    from rtctl.control._kernels import BANK
+    from rtctl.trace import TraceReader
+
+    sc = scene.load(*TWIN)
+    group, twin = build(sc), PerChannelRig(sc)
+    assert [s.name for s in twin.stages if s.name.startswith("control")] == [
+        f"control lateral.{i}" for i in range(4)]
+    assert [s.name for s in group.stages if s.name.startswith("control")] == ["control lateral"]
+    (_, _, ctl), = group.controllers
+    # each column waits and watches as its channel's own controller did
+    for _, _, one in twin.controllers:
+        cols = [int(np.nonzero(ctl.index[BANK] == b)[0][0]) for b in one.index[BANK]]
+        assert np.array_equal(ctl.state[:, cols], one.state) and np.array_equal(ctl.target[:, cols], one.target)
+    assert sorted(set(ctl.warm.tolist())) == [group.latency + w + 1 for w in (19, 25, 50, 75)]
+    runs = {}
+    for name, rig in (("group", group), ("twin", twin)):
+        run(sc, tmp_path / name, plot=False, rig=rig)
+        runs[name] = (TraceReader(tmp_path / name / "trace").records,
+                      json.loads((tmp_path / name / "summary.json").read_text()))
+    (ra, sa), (rb, sb) = runs["group"], runs["twin"]
+    assert len(ra) == len(rb) > 0
+    for f in ra.dtype.names:
+        if f not in ("compute_us", "wake_late_us"):
+            assert ra[f].tobytes() == rb[f].tobytes(), f"trace field {f} differs"
+    varying = {"realtime_factor", "cpu_realtime_factor", "build_s", "block_time_us", "wake_late_us", "realtime"}
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        if k not in varying:
+            assert sa[k] == sb[k], f"summary {k}: {sa[k]!r} != {sb[k]!r}"
+    rows = {r["name"]: r for r in sa["channels"]}
+    assert all(rows[f"lateral.{i}"]["controlled"] for i in range(4))
+    assert [rows[f"lateral.{i}"]["observer_window_s"] for i in range(4)] == [600 / 48e3, 1600 / 48e3,
+                                                                             800 / 48e3, 2400 / 48e3]
 
 
 def test_closed_loop_needs_tones():

@@ -112,11 +112,16 @@ def test_closed_loop_each_channel_observes_over_its_own_tones():
             long = observer_block(H[c:c + 1], drive[c:c + 1, n - obs.window:n], sensed[rows, n - obs.window:],
                                   obs.freqs[c:c + 1], rig.fs, m, start=n - obs.window)
             assert abs(long[0, 0, 0] - want[0, 0, 0]) > 1e-4 * abs(want[0, 0, 0]), c
-    # every controller reads its own channel's estimates, a view of the group observer's
-    for name, seen, _ in rig.controllers:
-        c = int(name.rsplit(".", 1)[1])
-        assert seen.stage is rig.observer_stages[0][1] and np.shares_memory(seen.observer.est, obs.est)
-        assert np.array_equal(seen.observer.est, obs.est[c:c + 1]) and seen.observer.window == obs.windows[c]
+    # the group's one controller reads the group observer's estimates, each tone its own channel's
+    # row, and waits for that channel's window in whole blocks
+    from rtctl.control._kernels import CHANNEL, OBS_CH
+
+    (_, seen, ctl), = rig.controllers
+    assert seen is rig.observer_stages[0][1]
+    stage, = (s for s in rig.stages if s.name == "control lateral")
+    assert stage.args["est"] is obs.est and stage.args["drive_est"] is obs.u_out
+    assert ctl.index[OBS_CH].tolist() == ctl.index[CHANNEL].tolist() == list(range(5))
+    assert ctl.warm.tolist() == [L + 750 + 1, L + 150 + 1, L + 75 + 1, L + 25 + 1, L + 6 + 1]
 
 
 
@@ -125,7 +130,7 @@ def test_closed_loop_windows_off_the_block_grid():
     235 + 265 Hz (one 30 Hz beat: 1600, where whole periods of both need 9600): the lock-ins hop
     every 8 samples, the pair is read by least squares, and each estimate is ``H`` applied to the
     joint least-squares phasors (numpy ``lstsq``) of the drive and currents the loop really had
-    over the channel's own window; the controllers wait whole blocks for them (19 and 50)."""
+    over the channel's own window; the controller's columns wait whole blocks for them (19 and 50)."""
     from rtctl.engine.rig import build
 
     tones = "[{channel = 0, freq = 80, voltage = 1.0, target_um = 6.0}, " \
@@ -135,7 +140,8 @@ def test_closed_loop_windows_off_the_block_grid():
     obs = rig.observer_stages[0][1].observer
     assert obs.windows.tolist() == [600, 1600] and obs.lstsq.tolist() == [False, True] and obs.hop == 8
     assert obs.lock_u.cond[1] == pytest.approx(1.0686, abs=1e-4)
-    assert [ctl.warm for _, _, ctl in rig.controllers] == [rig.latency + 19 + 1, rig.latency + 50 + 1]
+    (_, _, ctl), = rig.controllers
+    assert ctl.warm.tolist() == [rig.latency + 19 + 1] + 2 * [rig.latency + 50 + 1]  # the pair: two columns
     n_blocks, B, L, m = 300, rig.block, rig.latency, obs.n_seg
     drive, sensed = np.zeros((2, (n_blocks + L) * B)), np.zeros((2 * m, n_blocks * B))
     for k in range(n_blocks):

@@ -230,3 +230,27 @@ def test_least_squares_channels_match_numpy_lstsq():
         want = np.einsum("kej,kj->ke", Hc[c, :f.size], ph)
         np.testing.assert_allclose(got[c, :f.size], want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
         np.testing.assert_allclose(obs.u_out[c, :f.size, 0], np.abs(ph[:, 0]), rtol=1e-9)
+
+
+def _tone_window_one_by_one(freqs, fs, hop, max_seconds=1.0):
+    """tone_window as a plain loop over the candidate windows (the reference)."""
+    f = np.asarray(freqs, dtype=float).ravel()
+    f = f[np.isfinite(f) & (f > 0)]
+    m_max = max(1, int(max_seconds * fs) // hop)
+    for m in range(1, m_max + 1):
+        cyc = f * (m * hop) / fs
+        if np.all(np.abs(cyc - np.round(cyc)) < 1e-9):
+            return m * hop
+    return m_max * hop
+
+
+def test_tone_window_is_the_first_candidate_of_whole_periods():
+    """Against the candidates tried one by one: tones with short, long and no whole-period
+    windows (the last give up at max_seconds), beat pairs, unused slots, several hops."""
+    rng = np.random.default_rng(7)
+    rows = [[250.0], [245.0, 255.0], [2.0, 0.0], [80.0], [601.0], [123.456], [0.0], [np.nan, 40.0],
+            [1000.0, 1500.0, 1200.0], [47.9]]
+    rows += [[round(x, k)] for x, k in zip(rng.uniform(20.0, 900.0, 40), rng.integers(0, 4, 40))]
+    for row in rows:
+        for fs, hop, sec in ((48000.0, 32, 1.0), (48000.0, 8, 1.0), (44100.0, 64, 2.0), (48000.0, 32, 0.01)):
+            assert tone_window(row, fs, hop, sec) == _tone_window_one_by_one(row, fs, hop, sec), (row, hop)

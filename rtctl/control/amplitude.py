@@ -99,18 +99,28 @@ class AmplitudeController:
         Each tone's share of its channel's max_voltage, V.
     targets : array_like, shape (n,)
         Target tip amplitude per tone, m.
-    latency, window : int
-        Blocks from a drive block to the currents answering it; the observer's window in blocks.
+    latency : int
+        Blocks from a drive block to the currents answering it.
+    window : int or array_like of int, shape (n,)
+        The observer's window in blocks: one for every tone, or each tone's own (its channel's
+        window: a group's channels each have theirs, and one controller serves the group).
     block : int
         Samples per block (each amplitude change ramps over one block).
     ring : int
         Blocks the plant rings after a start or a target step (its slowest loaded mode's time
         constant, from the model): the first estimate is taken after the window and this; it
         also sets the stretch (:func:`steady_blocks`).
+
+    Attributes
+    ----------
+    gain, warm, hold : scalars, or ndarrays of shape (n,)
+        The correction exponent and the wait (:func:`design`) and the stretch
+        (:func:`steady_blocks`), in blocks: one each for one ``window``, per tone for a window per
+        tone.
     """
 
     def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
-                 latency: int, window: int, block: int, ring: int = 0):
+                 latency: int, window, block: int, ring: int = 0):
         n = len(bank_index)
         self.n = n
         self.index = np.zeros((N_INDEX, n), dtype=np.int64)
@@ -124,9 +134,18 @@ class AmplitudeController:
         self._ff = 1.0 / g
         self._amax = np.asarray(max_amplitude, dtype=float)
         self.targets0 = np.asarray(targets, dtype=float)
-        self.gain, self.warm = design(latency, window)
         self.ring = max(0, int(ring))
-        self.hold = steady_blocks(window, self.ring)
+        if np.ndim(window) == 0:
+            self.gain, self.warm = design(latency, window)
+            self.hold = steady_blocks(window, self.ring)
+        else:
+            w = np.asarray(window)
+            if w.shape != (n,) or not np.issubdtype(w.dtype, np.integer):
+                raise ValueError(f"window must be an int or one int per tone, shape ({n},)")
+            designs = [design(latency, int(x)) for x in w]
+            self.gain = np.array([d[0] for d in designs])
+            self.warm = np.array([d[1] for d in designs], dtype=np.int64)
+            self.hold = np.array([steady_blocks(int(x), self.ring) for x in w], dtype=np.int64)
         self.block = int(block)
         self.reset()
 

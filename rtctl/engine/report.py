@@ -229,13 +229,14 @@ def _control(rig, rows) -> None:
     from the controllers' final state."""
     if not rig.controllers:
         return  # open loop: rtctl.control is neither needed nor imported
-    from ..control._kernels import BANK, CHANNEL, CMD, EST, SAT
+    from ..control._kernels import BANK, CHANNEL, CMD, EST, OBS_CH, SAT
 
     for _, st, ctl in rig.controllers:
         for j in range(ctl.n):
             row = rows[int(ctl.index[CHANNEL, j])]
             row["controlled"] = True
-            row["observer_window_s"] = st.observer.window / rig.fs
+            # the channel's own window (its observer's row), not the group's longest
+            row["observer_window_s"] = int(st.observer.windows[ctl.index[OBS_CH, j]]) / rig.fs
             # how far the calibrated model's amplitude scale may be off (None: uncalibrated)
             row["uncertainty_pct"] = rig.calibration.uncertainty_pct(row["group"]) if rig.calibration else None
             sat = bool(ctl.state[SAT, j])

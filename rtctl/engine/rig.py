@@ -12,8 +12,8 @@ compiled function (:mod:`rtctl.engine.compose`)::
     pulses        square and pulse trains, held levels   (scenes with them)
     limiter       the final limiter: always, and always after every stage that writes ``out``
     observer G    self-sensing of bimorph group G        (control.observe, closed loop)
-    control G.i   next block's tone amplitudes of channel G.i from its estimates (closed loop;
-                  one per channel, after its group's observer)
+    control G     next block's tone amplitudes of every channel of group G from their
+                  estimates (closed loop; one per group, after its observer)
     [sim group i] the simulated plants advance by the limited block
                   ([bracketed]: the simulated device's, with ``SimDevice.in_block``; else the
                   engine calls its read and write around the block function)
@@ -92,8 +92,8 @@ class Rig:
         # the block function's observers, one per observed bimorph group: (group name,
         # ObserverStage, group, its first channel)
         self.observer_stages = []
-        # what is observed, per group or (closed loop) per channel: (name, ObserverStage or
-        # ObserverChannels, group, first channel); controllers: (name, that entry, controller)
+        # what is observed, per group: (name, ObserverStage, group, first channel); controllers,
+        # one per observed group with a controlled tone: (group name, its ObserverStage, controller)
         self.observers, self.controllers = [], []
         if scene.control.observe or self.closed:
             self._build_observers(scene)
@@ -179,9 +179,8 @@ class Rig:
     def _build_observers(self, scene):
         """Self-sensing observers on the scene's tone frequencies: one stage per bimorph group.
         Under closed-loop control each channel's lock-in window holds whole periods of its own
-        tones only (a 250 Hz channel is not made to wait for a 2 Hz one), and :attr:`observers`
-        lists the channels one by one (views of their group's stage) for a controller each; else
-        the window holds whole periods of every tone of the group."""
+        tones only (a 250 Hz channel is not made to wait for a 2 Hz one); else the window holds
+        whole periods of every tone of the group."""
         from ..selfsense.rt import short_windows
         from ..selfsense.stage import ObserverStage
 
@@ -205,14 +204,14 @@ class Rig:
                 st = ObserverStage(obs, self.latency, self.out[ch0:c1], self.sensed[row0:row0 + n * n_seg],
                                    self.estimated_amp[ch0:c1])
                 self.observer_stages.append((g.name, st, g, ch0))
-                if self.closed:
-                    self.observers += [(f"{g.name}.{c}", st.channels(c, c + 1), g, ch0 + c) for c in range(n)]
-                else:
-                    self.observers.append((g.name, st, g, ch0))
+                self.observers.append((g.name, st, g, ch0))
             ch0, row0 = ch0 + n, row0 + n * n_seg
 
     def _build_control(self, scene):
-        """Amplitude control of every sine tone with a target, one controller per observer."""
+        """Amplitude control of every sine tone with a target, one controller per observed group:
+        a column per tone, each waiting for and watching its channel's own window (a stage per
+        channel would pay the call's fixed cost once per channel, and a composed function of a
+        thousand calls takes LLVM longer to build than anyone waits)."""
         from ..control import AmplitudeController
 
         self.controlled = {}  # bank tone index -> (controller, its column)
@@ -239,8 +238,10 @@ class Rig:
             # the model's tip per commanded volt under the assumed finger (amplifier included)
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
-            ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
-                                      -(-obs.window // self.block), self.block, ring)
+            # each tone waits for its own channel's window, in whole blocks
+            window = -(-obs.windows[c_] // self.block)
+            ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
+                                      ring)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
@@ -352,12 +353,12 @@ class Rig:
                 stages.append(Stage(f"observer {name}", observe_stage, st.args, reset=st.reset))
                 # the next block's amplitudes, from this block's estimates of the group's channels
                 for cname, seen, ctl in self.controllers:
-                    if getattr(seen, "stage", seen) is not st:
+                    if seen is not st:
                         continue
                     from ..control import amplitude_control
 
                     stages.append(Stage(f"control {cname}", amplitude_control,
-                                        dict(est=seen.observer.est, drive_est=seen.observer.u_out, **ctl.args,
+                                        dict(est=st.observer.est, drive_est=st.observer.u_out, **ctl.args,
                                              pending=self.bank.pending,
                                              lim_counts=self.limiter.counts, ramp=float(self.block)),
                                         reset=ctl.reset))

@@ -110,13 +110,23 @@ class FrontEnd:
         ndarray, shape (n_seg,), complex
             A per drive volt, to subtract from the sensed phasor.
         """
-        w = 2 * math.pi * float(f_hz)
-        ws = 2 * math.pi * self.fs
-        k = np.concatenate((np.arange(-self.n_images, 0), np.arange(1, self.n_images + 1)))
-        om = w + k * ws
+        om = self._image_lines(f_hz)
         g, _ = self._line(om)
         total = 0.0
         for gi, oi in zip(g, om):
             y = np.asarray(current_per_volt(abs(oi)))
             total = total + gi * (np.conj(y) if oi < 0 else y)
         return total
+
+    def _image_lines(self, f_hz):
+        """The images' angular frequencies ``w + k ws``, ``0 < |k| <= n_images`` (signed)."""
+        w = 2 * math.pi * float(f_hz)
+        ws = 2 * math.pi * self.fs
+        k = np.concatenate((np.arange(-self.n_images, 0), np.arange(1, self.n_images + 1)))
+        return w + k * ws
+
+    def image_omegas(self, f_hz) -> np.ndarray:
+        """The angular frequencies (rad/s, > 0) at which :meth:`images` asks ``current_per_volt``
+        for the currents of tone ``f_hz``, in its order: solve them all at once beforehand (e.g.
+        :meth:`~rtctl.selfsense.tmm.TMMBeam.currents`) and hand :meth:`images` a look-up."""
+        return np.abs(self._image_lines(f_hz))

@@ -48,7 +48,7 @@ from rtctl.errors import ModelError
 from rtctl.selfsense.frontend import FrontEnd
 from rtctl.selfsense.tmm import _load_stiffness
 
-__all__ = ["EST_NAMES", "MAX_COND", "MAX_COND_SUPPORT", "ObserverMatrix", "design", "estimate"]
+__all__ = ["EST_NAMES", "MAX_COND", "MAX_COND_SUPPORT", "ObserverMatrix", "design", "design_many", "estimate"]
 
 #: Rows of an estimate: tip deflection (m), tip velocity (m/s), tip slope (rad), tip moment
 #: (N m), tip force into the load (N), root deflection (m), root slope (rad), root moment
@@ -91,8 +91,27 @@ class ObserverMatrix:
     unknown_support: bool
 
 
+def design_many(beam, freqs_hz, frontend: FrontEnd | None = None, unknown_support=None,
+                image_load=None, max_cond=None) -> dict:
+    """:func:`design` at each distinct frequency of ``freqs_hz`` (Hz, > 0), as a dict frequency
+    -> :class:`ObserverMatrix`; the same matrices :func:`design` gives one by one, bitwise, but
+    the aliased images of every frequency (``2 n_images`` beam solves each, most of the work) are
+    solved in one batch (:meth:`~rtctl.selfsense.tmm.TMMBeam.currents`)."""
+    freqs = list(dict.fromkeys(float(f) for f in np.ravel(freqs_hz)))
+    currents = None
+    if frontend is not None and freqs:
+        om = np.concatenate([frontend.image_omegas(f) for f in freqs])
+        loads = [_load_stiffness(image_load, w) for w in om]
+        table = dict(zip(om.tolist(), beam.currents(om, loads)))
+
+        def currents(omega):
+            return table[float(omega)]
+    return {f: design(beam, f, frontend, unknown_support, image_load, max_cond, image_currents=currents)
+            for f in freqs}
+
+
 def design(beam, freq_hz, frontend: FrontEnd | None = None, unknown_support=None,
-           image_load=None, max_cond=None) -> ObserverMatrix:
+           image_load=None, max_cond=None, image_currents=None) -> ObserverMatrix:
     """Observer matrix at one frequency.
 
     Parameters
@@ -113,6 +132,10 @@ def design(beam, freq_hz, frontend: FrontEnd | None = None, unknown_support=None
     max_cond : float, optional
         Refuse designs whose scaled condition number exceeds this (default ``MAX_COND``, or
         ``MAX_COND_SUPPORT`` when the support is identified).
+    image_currents : callable, optional
+        ``omega -> ndarray (n_seg,)``: the beam's segment currents per volt under ``image_load``
+        at the images' frequencies (:meth:`FrontEnd.image_omegas`), solved beforehand (what
+        :func:`design_many` does); default each solved here.
 
     Raises
     ------
@@ -168,7 +191,7 @@ def design(beam, freq_hz, frontend: FrontEnd | None = None, unknown_support=None
     aa = 1.0 if fe is None else fe.aa(f)
     img = np.zeros(n, dtype=complex)
     if fe is not None:
-        img = fe.images(f, lambda om: beam.solve(om, _load_stiffness(image_load, om))["current"])
+        img = fe.images(f, image_currents or (lambda om: beam.solve(om, _load_stiffness(image_load, om))["current"]))
     # q_j = I_j / (j w) - b_j V with I_j = (S_j - img_j D) / aa, V = vfac D.
     # u = Ainv q = Ainv [diag(1/(j w aa)) S - (img/(j w aa) + b vfac) D].
     Hu = np.empty((n_u, 1 + n), dtype=complex)

@@ -86,9 +86,9 @@ class ObserverStage:
 
 
 class ObserverChannels:
-    """Some channels of an :class:`ObserverStage`, for a consumer that is per channel (one
-    controller per channel): ``observer`` is an :class:`~rtctl.selfsense.rt.ObserverRows` of
-    them, ``stage`` the stage that runs them (it alone is in the stage list and resets them)."""
+    """Some channels of an :class:`ObserverStage`, for a consumer that is per channel or per
+    few channels: ``observer`` is an :class:`~rtctl.selfsense.rt.ObserverRows` of them, ``stage``
+    the stage that runs them (it alone is in the stage list and resets them)."""
 
     def __init__(self, stage: ObserverStage, c0: int, c1: int):
         self.stage = stage

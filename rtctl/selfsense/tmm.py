@@ -63,6 +63,19 @@ __all__ = ["Laminate", "laminate_of", "Support", "TMMBeam", "krylov", "piece_mat
 _TERMS = 12  # series terms: |lam x^4| <= 1 leaves < 1/(48)! after 12
 #: Modes tabulated for the damping: exact modal damping on these, the rest quasi-static.
 N_MODAL = 6
+#: LAPACK's banded solve with partial pivoting (stable), the routine scipy's solve_banded calls
+_zgbsv = scipy.linalg.get_lapack_funcs("gbsv", (np.zeros(1, dtype=complex),))
+
+
+def _band_solve(ab, rhs):
+    """Solve the system of 5 bands each side in ``ab`` (gbsv's storage, 16 rows; overwritten)
+    for ``rhs`` (overwritten), as scipy's solve_banded does, without its checks and copies."""
+    _, _, y, info = _zgbsv(5, 5, ab, rhs, overwrite_ab=True, overwrite_b=True)
+    if info > 0:
+        raise np.linalg.LinAlgError("singular matrix")
+    if info < 0:
+        raise ValueError(f"illegal value in argument {-info} of gbsv")
+    return y
 
 
 @dataclass(frozen=True)
@@ -235,6 +248,44 @@ def piece_matrix(lam, EI, x):
                      [lam * f3, f0, f1 / EI, f2 / EI],
                      [EI * lam * f2, EI * lam * f3, f0, f1],
                      [EI * lam * f1, EI * lam * f2, lam * f3, f0]])
+
+
+#: Krylov series divisors ``(k+1)...(k+4)`` .. ``(k+4)...(k+7)`` of term ``n`` (``k = 4 n``)
+_KRYLOV_DIV = np.array([[(k + 1) * (k + 2) * (k + 3) * (k + 4), (k + 2) * (k + 3) * (k + 4) * (k + 5),
+                         (k + 3) * (k + 4) * (k + 5) * (k + 6), (k + 4) * (k + 5) * (k + 6) * (k + 7)]
+                        for k in range(0, 4 * _TERMS, 4)])
+
+
+def _cmul(a, b):
+    """``a * b`` elementwise as a scalar complex product rounds it (Python's and numpy's scalar
+    arithmetic: four products, a difference and a sum), which numpy's array loop, fusing a
+    product into the sum, does not always match to the last bit."""
+    a, b = np.asarray(a, dtype=complex), np.asarray(b, dtype=complex)
+    return (a.real * b.real - a.imag * b.imag) + 1j * (a.real * b.imag + a.imag * b.real)
+
+
+def _piece_matrices(lam, EI, x):
+    """:func:`piece_matrix` of many pieces at once, bitwise the same: ``lam``, ``EI`` complex and
+    ``x`` (m) of shape (n,); shape (n, 4, 4). Where :func:`piece_matrix` multiplies scalars the
+    products are :func:`_cmul`'s, and the powers of ``x`` are Python's (numpy's power loop rounds
+    differently)."""
+    x3 = np.array([v**3 for v in x])
+    x4 = np.array([v**4 for v in x])
+    x = np.asarray(x, dtype=float)
+    z = _cmul(lam, x4)
+    f = np.zeros((x.size, 4), dtype=complex)
+    term = np.stack([np.ones_like(x), x, x * x / 2.0, x3 / 6.0], axis=1).astype(complex)
+    for n in range(_TERMS):
+        f += term
+        term = term * z[:, None] / _KRYLOV_DIV[n]  # array by scalar, as in krylov
+    f0, f1, f2, f3 = f.T
+    EIlam = _cmul(EI, lam)
+    lf1, lf2, lf3 = _cmul(EIlam, f1), _cmul(EIlam, f2), _cmul(EIlam, f3)
+    l3 = _cmul(lam, f3)
+    return np.stack([np.stack([f0, f1, f2 / EI, f3 / EI], axis=1),
+                     np.stack([l3, f0, f1 / EI, f2 / EI], axis=1),
+                     np.stack([lf2, lf3, f0, f1], axis=1),
+                     np.stack([lf1, lf2, l3, f0], axis=1)], axis=1)
 
 
 def load_point_matrix(K):
@@ -481,54 +532,135 @@ class TMMBeam:
         volts = np.atleast_2d(np.asarray(volts, dtype=complex))
         n_cases = volts.shape[0]
         EI, lam = self._ei_lam(omega, c)
-        pieces, seg_nodes, x = [], [0], [0.0]
         e_m = np.array([0, 0, 1.0, 0])
+        segs, seg_nodes = [], [0]
         for j in range(self.n_seg):
             n, h = self._pieces(lam, self.bounds[j], self.bounds[j + 1])
             P = piece_matrix(lam, EI, h)
-            t = self.lam.m_p * (e_m - P @ e_m)        # per volt on this segment
-            pieces += [(P, t, j)] * n
-            x += list(self.bounds[j] + h * np.arange(1, n + 1))
+            segs.append((n, h, P, self.lam.m_p * (e_m - P @ e_m)))  # t: per volt on this segment
             seg_nodes.append(seg_nodes[-1] + n)
-        N = len(pieces)
+        N = seg_nodes[-1]
+        x = np.concatenate([[0.0]] + [self.bounds[j] + h * np.arange(1, n + 1) for j, (n, h, _, _) in enumerate(segs)])
         L, EIr = self.length, self.lam.EI
         D = np.array([L, 1.0, EIr / L, EIr / L**2])  # y = D y~: dimensionless unknowns
         n_unk = 4 * (N + 1)
-        A = np.zeros((n_unk, n_unk), dtype=complex)
+        # The block-bidiagonal system (5 bands each side: piece i's rows 2 + 4 i .. 5 + 4 i hold
+        # -P~ on the unknowns of node i and the identity on those of node i + 1), written straight
+        # into LAPACK gbsv's band storage: row 10 + r - col holds A[r, col], rows 0-4 are room for
+        # the fill-in of its partial pivoting (what scipy's solve_banded hands gbsv, bitwise).
+        # A dense matrix to take the bands from cost more than the solve.
+        ab = np.zeros((16, n_unk), dtype=complex)
         rhs = np.zeros((n_unk, n_cases), dtype=complex)
         ks, kr = self.support_stiffness(omega, c)
         # Root rows (the ground side is free: only w, psi remain, as R_m of Eq. 1).
         if math.isinf(self.support.k):
-            A[0, 0] = 1.0
+            ab[10, 0] = 1.0
         else:   # Q(0) + k w(0) = 0
-            A[0, 3], A[0, 0] = 1.0, ks * D[0] / D[3]
+            ab[7, 3], ab[10, 0] = 1.0, ks * D[0] / D[3]
         if math.isinf(self.support.k_rot):
-            A[1, 1] = 1.0
+            ab[10, 1] = 1.0
         else:   # M(0) - k_rot psi(0) = 0
-            A[1, 2], A[1, 1] = 1.0, -kr * D[1] / (EIr / L)
-        for i, (P, t, j) in enumerate(pieces):
-            r = 2 + 4 * i
-            A[r:r + 4, 4 * i:4 * i + 4] = -(P * D[None, :]) / D[:, None]
-            A[r:r + 4, 4 * i + 4:4 * i + 8] = np.eye(4)
-            rhs[r:r + 4] = (t / D)[:, None] * volts[None, :, j]
+            ab[9, 2], ab[10, 1] = 1.0, -kr * D[1] / (EIr / L)
+        a, b = np.divmod(np.arange(16), 4)
+        i0 = 0
+        for j, (n, _, P, t) in enumerate(segs):
+            i = np.arange(i0, i0 + n)
+            ab[(12 + a - b)[None, :], (4 * i[:, None] + b[None, :])] = (-(P * D[None, :]) / D[:, None]).ravel()
+            rhs[2 + 4 * i0:2 + 4 * (i0 + n)] = np.tile((t / D)[:, None] * volts[None, :, j], (n, 1))
+            i0 += n
+        ab[8, 4:] = 1.0
         r = 2 + 4 * N
         c0 = 4 * N
         # Tip: M(L) = tip_moment; Q(L) - K w(L) = -tip_force.
-        A[r, c0 + 2] = 1.0
+        ab[10, c0 + 2] = 1.0
         rhs[r] = np.asarray(tip_moment, dtype=complex) / D[2]
-        A[r + 1, c0 + 3], A[r + 1, c0] = 1.0, -load * D[0] / D[3]
+        ab[10, c0 + 3], ab[13, c0] = 1.0, -load * D[0] / D[3]
         rhs[r + 1] = -np.asarray(tip_force, dtype=complex) / D[3]
-        # Block-bidiagonal: 5 bands each side; LAPACK gbsv pivots partially (stable).
-        ab = np.zeros((11, n_unk), dtype=complex)
-        for d in range(-5, 6):
-            diag = np.diagonal(A, offset=-d)
-            if d >= 0:
-                ab[5 + d, :n_unk - d] = diag
-            else:
-                ab[5 + d, -d:] = diag
-        y = scipy.linalg.solve_banded((5, 5), ab, rhs, check_finite=False)
+        y = _band_solve(ab, rhs)
         y = y.T.reshape(n_cases, N + 1, 4) * D[None, None, :]
-        return np.array(x), np.array(seg_nodes), y
+        return x, np.array(seg_nodes), y
+
+    def currents(self, omega, load=0.0):
+        """Segment currents per volt (every segment at 1 V, no tip force or moment) at each of
+        many angular frequencies: ``solve(omega[i], complex(load[i]))["current"]`` for every
+        ``i``, bitwise, with the numpy work of all of them done at once (an observer's aliased
+        images: 80 solves per tone, far above the beam's modes, in many pieces each).
+
+        Parameters
+        ----------
+        omega : array_like, shape (m,)
+            rad/s (> 0).
+        load : complex or array_like, shape (m,)
+            Dynamic stiffness of the tip load at each, N/m.
+
+        Returns
+        -------
+        ndarray, shape (m, n_seg), complex
+        """
+        om = np.atleast_1d(np.asarray(omega, dtype=float))
+        K = np.broadcast_to(np.asarray(load, dtype=complex), om.shape)
+        n = self.n_seg
+        out = np.empty((om.size, n), dtype=complex)
+        if om.size == 0:
+            return out
+        # the scalar set-up of each solve as solve() does it (Python's and numpy's scalar
+        # arithmetic are not numpy's array loops to the last bit: a complex quotient differs)
+        setup = []
+        for w in om:
+            c = self._c(w)
+            EI, lam = self._ei_lam(w, c)
+            setup.append((c, EI, lam, tuple(self._pieces(lam, self.bounds[j], self.bounds[j + 1])
+                                            for j in range(n))))
+        # solves with the same pieces per segment share one band layout
+        by_layout: dict = {}
+        for i, (_, _, _, pcs) in enumerate(setup):
+            by_layout.setdefault(tuple(p[0] for p in pcs), []).append(i)
+        L, EIr = self.length, self.lam.EI
+        D = np.array([L, 1.0, EIr / L, EIr / L**2])
+        e_m = np.array([0, 0, 1.0, 0])
+        a, b = np.divmod(np.arange(16), 4)
+        for counts, idx in by_layout.items():
+            m = len(idx)
+            N = sum(counts)
+            n_unk = 4 * (N + 1)
+            EI = np.array([setup[i][1] for i in idx])
+            lam = np.array([setup[i][2] for i in idx])
+            ab = np.zeros((m, 16, n_unk), dtype=complex)
+            rhs = np.zeros((m, n_unk, 1), dtype=complex)
+            i0 = 0
+            for j, nj in enumerate(counts):
+                h = [setup[i][3][j][1] for i in idx]
+                P = _piece_matrices(lam, EI, h)
+                t = self.lam.m_p * (e_m - P @ e_m)
+                pieces = np.arange(i0, i0 + nj)
+                blk = (-(P * D[None, None, :]) / D[None, :, None]).reshape(m, 1, 16)
+                ab[:, (12 + a - b)[None, :], (4 * pieces[:, None] + b[None, :])] = blk
+                rhs[:, 2 + 4 * i0:2 + 4 * (i0 + nj), 0] = np.tile(t / D[None, :], (1, nj))
+                i0 += nj
+            ab[:, 8, 4:] = 1.0
+            c0 = 4 * N
+            ab[:, 10, c0 + 2] = 1.0
+            ab[:, 10, c0 + 3] = 1.0
+            for q, i in enumerate(idx):
+                w = om[i]
+                ks, kr = self.support_stiffness(w, setup[i][0])
+                if math.isinf(self.support.k):
+                    ab[q, 10, 0] = 1.0
+                else:
+                    ab[q, 7, 3], ab[q, 10, 0] = 1.0, ks * D[0] / D[3]
+                if math.isinf(self.support.k_rot):
+                    ab[q, 10, 1] = 1.0
+                else:
+                    ab[q, 9, 2], ab[q, 10, 1] = 1.0, -kr * D[1] / (EIr / L)
+                ab[q, 13, c0] = -complex(K[i]) * D[0] / D[3]
+            seg_nodes = np.concatenate(([0], np.cumsum(counts)))
+            psi = np.empty((m, n + 1), dtype=complex)
+            for q in range(m):
+                y = _band_solve(ab[q], rhs[q])
+                psi[q] = y[4 * seg_nodes + 1, 0] * D[1]
+            # j w times the charge: (0 + j w)(a + j b) is (-w b, w a) however it is rounded
+            out[idx] = (1j * om[idx])[:, None] * (self.cp * (1.0 + 0j) - self.lam.m_p * np.diff(psi, axis=1))
+        return out
 
     def _ports_kv(self, omega, c):
         """Port receptance with Kelvin-Voigt coefficient ``c`` and the root state per input.

@@ -1,0 +1,61 @@
+"""Reference twin of the closed loop's control: one AmplitudeController per channel, each a stage
+of its own reading its channel's rows of the group's observer (an ObserverChannels view), stepped
+right after the observer in channel order -- the arrangement the rig had before one controller
+served a whole group. Only the tests build it: whatever the group controller does must come out
+bitwise as this does."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rtctl.control import AmplitudeController, amplitude_control
+from rtctl.engine.rig import Rig
+from rtctl.engine.stage import Stage
+
+
+class PerChannelRig(Rig):
+    """A :class:`~rtctl.engine.rig.Rig` whose closed loop has a controller per channel."""
+
+    def _build_control(self, scene):
+        self.controlled = {}  # bank tone index -> (controller, its column)
+        per_channel = {}
+        for tone, bank in zip(self.tones, self.stimulus.bank_index):
+            per_channel[tone.channel] = per_channel.get(tone.channel, 0) + len(bank)
+        views = [(f"{name}.{c}", st.channels(c, c + 1), g, ch0 + c)
+                 for name, st, g, ch0 in self.observer_stages for c in range(st.observer.n_channels)]
+        for name, st, g, c0 in views:
+            obs = st.observer
+            finger = self.models.finger(g)
+            cols = []
+            for tone, bank in zip(self.tones, self.stimulus.bank_index):
+                c = tone.channel - c0
+                if not bank or not (0 <= c < obs.n_channels) or not np.isfinite(tone.target_m):
+                    continue
+                for f, b in zip(tone.freqs, bank):
+                    slot = int(np.nonzero(obs.freqs[c] == f)[0][0])
+                    cols.append((c, slot, b, tone.channel, f, tone.target_m / len(bank),
+                                 g.max_voltage * (1.0 - 1e-9) / per_channel[tone.channel]))
+            if not cols:
+                continue
+            c_, slot, bank, chan, f, target, amax = (np.array(x) for x in zip(*cols))
+            tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
+            ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
+            ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
+                                      -(-obs.window // self.block), self.block, ring)
+            self.controllers.append((name, st, ctl))
+            for j, b in enumerate(bank):
+                self.controlled[int(b)] = (ctl, j)
+
+    def _stages(self) -> list:
+        """The rig's stages with a control stage per channel right after its group's observer (the
+        rig's own list matches controllers to whole-group stages only, so it has none)."""
+        stages = super()._stages()
+        for name, st, _, _ in self.observer_stages:
+            at = [s.name for s in stages].index(f"observer {name}") + 1
+            mine = [Stage(f"control {cname}", amplitude_control,
+                          dict(est=seen.observer.est, drive_est=seen.observer.u_out, **ctl.args,
+                               pending=self.bank.pending, lim_counts=self.limiter.counts, ramp=float(self.block)),
+                          reset=ctl.reset)
+                    for cname, seen, ctl in self.controllers if seen.stage is st]
+            stages[at:at] = mine
+        return stages
