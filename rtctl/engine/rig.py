@@ -239,8 +239,9 @@ class Rig:
             # the model's tip per commanded volt under the assumed finger (amplifier included)
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
+            rise = int(round(scene.control.rise_s * self.fs / self.block))
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
-                                      -(-obs.window // self.block), self.block, ring)
+                                      -(-obs.window // self.block), self.block, ring, rise)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
