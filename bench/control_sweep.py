@@ -26,7 +26,7 @@ Targets: the first eleven are half the least reach over the grid's devices and f
 (``--targets`` recomputes it), so they are reachable everywhere; the last three 80 % of the
 nominal device's reach under the 50 g finger: near the cap, out of reach under 200 g.
 
-    python bench/control_sweep.py [--quick] [--json] [--jobs N] [--targets]
+    python bench/control_sweep.py [--quick] [--json] [--jobs N] [--targets] [--set KEY=VALUE ...]
 
 Prints one JSON object (``--json``: only that), then a table: per tone and segment the steady
 error (%), the time to stay within 5 % against the time required (ms) and the overshoot (%),
@@ -129,14 +129,14 @@ def _freqs(f, b):
     return np.array([f - b / 2, f + b / 2]) if b else np.array([float(f)])
 
 
-def case(device: dict, calibrated: bool, tones=TONES, events=EVENTS, duration=DURATION) -> dict:
+def case(device: dict, calibrated: bool, tones=TONES, events=EVENTS, duration=DURATION, extra=()) -> dict:
     """One closed-loop run of ``device`` and its figures per tone (:func:`judge`)."""
     from rtctl import scene
     from rtctl.engine import report
     from rtctl.engine.run import run
     from rtctl.trace import TraceReader
 
-    s = scene.load(SCENE, overrides(device, tones, calibrated, events, duration))
+    s = scene.load(SCENE, [*overrides(device, tones, calibrated, events, duration), *extra])
     vmax = s.actuator[0].max_voltage
     g = gains(device, tones, events)
     with tempfile.TemporaryDirectory() as d:
@@ -177,12 +177,12 @@ def case(device: dict, calibrated: bool, tones=TONES, events=EVENTS, duration=DU
             "calibration": "calibration" in summary, "warnings": summary["warnings"], "tones": rows}
 
 
-def guarded(device: dict, calibrated: bool) -> dict:
+def guarded(device: dict, calibrated: bool, extra=()) -> dict:
     """:func:`case`, or what stopped it (a failed calibration is a miss of every tone, not the end
     of the sweep)."""
     t0 = time.perf_counter()
     try:
-        return case(device, calibrated)
+        return case(device, calibrated, extra=extra)
     except Exception as e:  # any failure of the run is a finding
         return {"device": device, "label": label(device), "calibrated": calibrated, "wall_s": time.perf_counter() - t0,
                 "calibration_s": 0.0, "error": f"{type(e).__name__}: {e}", "tones": []}
@@ -273,6 +273,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="five devices instead of the nominal one and all 32 corners")
     ap.add_argument("--targets", action="store_true", help="print each tone's least reach over the grid and exit")
     ap.add_argument("--jobs", type=int, default=1, help="cases run in this many processes")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a scene override for every run (e.g. control.rise_s=0.02); repeatable")
     a = ap.parse_args(argv)
     if a.targets:
         for (f, b, r), x in zip(TONES, least_reach()):
@@ -281,13 +283,13 @@ def main(argv=None) -> int:
     cases, tasks = [], [(dev, cal) for dev in devices(a.quick) for cal in (True, False)]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(a.jobs) as pool:
-        for c in pool.map(guarded, *zip(*tasks)):
+        for c in pool.map(guarded, *zip(*tasks), [tuple(a.set)] * len(tasks)):
             cases.append(c)
             if not a.json:
                 print(f"  {c['label']:<28} calibrated {'yes' if c['calibrated'] else 'no ':<3}: {c['wall_s']:.1f} s, "
                       f"{sum(len(r['misses']) for r in c['tones'])} misses {c.get('error') or ''}", file=sys.stderr)
     cal = [c for c in cases if c["calibrated"]]
-    result = {"scene": SCENE, "duration_s": DURATION, "events": [{"at": at, "set": s} for at, s in EVENTS],
+    result = {"scene": SCENE, "set": a.set, "duration_s": DURATION, "events": [{"at": at, "set": s} for at, s in EVENTS],
               "wall_s": time.perf_counter() - t0, "cases": cases,
               "calibrated_tones": len(TONES) * len(cal),
               "calibrated_tones_meeting": sum(not r["misses"] for c in cal for r in c["tones"]),

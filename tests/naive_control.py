@@ -27,6 +27,8 @@ from rtctl.control._kernels import (
     ON,
     PATIENCE,
     REF,
+    RISE,
+    RISEK,
     RREF,
     RRUN,
     RSUM,
@@ -59,7 +61,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         limited, col[LIMSEEN] = lim != col[LIMSEEN], lim
         a = col[CMD]
         c, j = index[OBS_CH, i], index[OBS_SLOT, i]
-        if col[ON]:
+        rising = col[RISEK] < col[RISE]
+        if col[ON] and not rising:
             u, y = drive_est[c, j, 0], math.hypot(*est[c, j, 0])
             if u >= LIVE_DRIVE * a and u > 0 and 0 < y < math.inf:
                 col[RSUM] += y / u
@@ -72,15 +75,18 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         starting = not col[ON]
         if not starting and r != col[TPREV] and col[GLIVE] > 0:
             a = r / col[GLIVE]
-            col[TPREV], col[WAIT] = r, col[WARM]
+            col[TPREV], col[WAIT] = r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
             col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
         elif starting or r != col[TPREV]:
             a = r / col[GHAT] if col[GHAT] > 0 else START * r * col[FF]
-            col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM]
+            if starting:
+                col[RISEK], rising = 0.0, col[RISE] > 0
+            col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
             col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
         elif col[WAIT] > 0:
             col[WAIT] -= 1
-            continue
+            if not rising:
+                continue
         else:
             y = math.hypot(*est[c, j, 0])
             col[EST] = y
@@ -126,5 +132,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if col[SAT]:
             status |= CONTROL_SATURATED
         col[CMD] = a
+        if rising:
+            col[RISEK] += 1
+            a *= (1 - math.cos(math.pi * col[RISEK] / col[RISE])) / 2
         pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = a, ramp, 1.0
     return status

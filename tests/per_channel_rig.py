@@ -40,8 +40,9 @@ class PerChannelRig(Rig):
             c_, slot, bank, chan, f, target, amax = (np.array(x) for x in zip(*cols))
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
+            rise = int(round(scene.control.rise_s * self.fs / self.block))
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
-                                      -(-obs.window // self.block), self.block, ring)
+                                      -(-obs.window // self.block), self.block, ring, rise)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)

@@ -147,7 +147,7 @@ def test_kernel_matches_its_naive_twin(seed):
     n = 7
     ctl = AmplitudeController(np.arange(n), np.zeros(n, int), rng.permutation(n), rng.integers(0, 3, n),
                               rng.uniform(1e-8, 1e-6, n), rng.uniform(10, 150, n), rng.uniform(1e-7, 5e-5, n),
-                              1, 3, BLOCK)
+                              1, 3, BLOCK, rise=(0, 1, 5, 12)[seed])
     twin = [a.copy() for a in (ctl.index, ctl.target, ctl.state)]
     pend_k, pend_n = np.zeros((N_PEND, n)), np.zeros((N_PEND, n))
     lim = np.zeros((3, 3), dtype=np.int64)
@@ -233,3 +233,27 @@ def test_a_target_that_moves_every_block_is_driven_at_the_plants_tip_per_volt():
     np.testing.assert_allclose(tip[2:learned], START * 0.5 * targets[1:learned - 1], rtol=1e-12)
     settled = loop.latency + loop.window + 2 * loop.ctl.hold + 1
     np.testing.assert_allclose(tip[settled:], targets[settled - 1:-1], rtol=1e-9)
+
+
+@pytest.mark.parametrize("rise", [1, 2, 7, 30])
+def test_a_start_rises_along_a_raised_cosine_then_waits_a_window(rise):
+    # the drive of block k of the rise is the command times (1 - cos(pi k / R)) / 2, k = 1 .. R
+    # (R = 1: the whole command in the first block, as without a rise); the first correction
+    # comes a latency and a window after the rise has reached the command, never before
+    latency, window = 1, 6
+    loop = Loop([5e-8], [1e-7], [5e-6], latency=latency, window=window)
+    loop.ctl.rise = rise
+    loop.ctl.reset()
+    loop.ctl.target[ENABLE] = 1.0
+    drives = []
+    for _ in range(rise + latency + window + 40):
+        loop.block()
+        drives.append(loop.pending[P_AMP, 0])
+    first = START * 5e-6 / 1e-7
+    k = np.arange(1, rise + 1)
+    np.testing.assert_allclose(drives[:rise], first * (1 - np.cos(np.pi * k / rise)) / 2, rtol=1e-15)
+    wait = design(latency, window)[1]  # from the rise's last block to an estimate of it alone
+    assert np.all(np.array(drives[rise - 1:rise + wait]) == first)
+    # the plant is half the model: feedback brings the drive to the target's without crossing it
+    assert drives[-1] == pytest.approx(5e-6 / 5e-8, rel=1e-3)
+    assert max(loop.truth[-1]) == pytest.approx(5e-6, rel=1e-3) and np.max(loop.truth) <= 5e-6 * (1 + 1e-9)

@@ -170,8 +170,8 @@ def test_image_model_matches_a_converged_plant(f, load):
 
 
 def test_short_windows_by_hand():
-    """On the block grid unless that is more than twice the shortest window without leakage:
-    whole periods on the sample grid (fs / f's reduced numerator, least common multiple over a
+    """On the block grid unless that is more than twice the shortest window without leakage (or
+    twice a shortest window of 50 ms or more): whole periods on the sample grid (fs / f's reduced numerator, least common multiple over a
     channel's tones), or one period of the closest spacing by least squares; the hop the largest
     divisor of the block dividing them all."""
     from rtctl.selfsense.rt import short_windows
@@ -184,10 +184,14 @@ def test_short_windows_by_hand():
     pairs = [[80.0, 0.0], [235.0, 265.0], [245.0, 255.0], [240.0, 270.0], [35.0, 45.0], [1000.0, 0.0]]
     w, lsq, hop = short_windows(pairs, FS, BLOCK)
     # 80 Hz: 600 against 2400; 235 + 265: one 30 Hz beat (1600) against 9600; 245 + 255: one 10 Hz
-    # beat (4800) against 9600, kept; 240 + 270 Hz: whole periods of both are one beat (1600);
-    # 35 + 45: 4800 against 9600, kept; 1 kHz: 48 against 96, kept
+    # beat (4800, 100 ms: at least LONG_WINDOW_S) against 9600, taken at twice; 240 + 270 Hz:
+    # whole periods of both are one beat (1600); 35 + 45: 4800 against 9600, taken; 1 kHz: 48
+    # against 96, kept (twice, and 1 ms)
+    assert w.tolist() == [600, 1600, 4800, 1600, 4800, 96]
+    assert lsq.tolist() == [False, True, True, False, True, False] and hop == 8
+    w, lsq, _ = short_windows(pairs, FS, BLOCK, long_s=0.2)  # twice is never enough
     assert w.tolist() == [600, 1600, 9600, 1600, 9600, 96]
-    assert lsq.tolist() == [False, True, False, False, False, False] and hop == 8
+    assert lsq.tolist() == [False, True, False, False, False, False]
     w, lsq, _ = short_windows(pairs, FS, BLOCK, shorten=1)
     assert w.tolist() == [600, 1600, 4800, 1600, 4800, 48]
     assert lsq.tolist() == [False, True, True, False, True, False]

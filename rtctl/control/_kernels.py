@@ -31,8 +31,10 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  RSUM,    # sum of the present stretch's tip per volt of each window (tip over the drive's lock-in)
  RRUN,    # windows in it
  RREF,    # the mean of the stretch before, m/V (0: none yet)
- ) = range(24)
-N_STATE = 24
+ RISE,    # blocks a start rises over (raised cosine; 0 or 1: within one block)
+ RISEK,   # blocks of the present rise done
+ ) = range(26)
+N_STATE = 26
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -121,7 +123,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         state[LIMSEEN, i] = lim
         a = state[CMD, i]
         c, j = index[OBS_CH, i], index[OBS_SLOT, i]
-        if state[ON, i] != 0.0:
+        rising = state[RISEK, i] < state[RISE, i]
+        if state[ON, i] != 0.0 and not rising:
             # the plant's tip per volt over the latest window, whatever the drive did in it (a
             # target that moves every block never gives a window of one command)
             u = drive_est[c, j, 0]
@@ -143,7 +146,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             # a target step while playing: the drive for it from the latest window's tip per volt
             a = r / state[GLIVE, i]
             state[TPREV, i] = r
-            state[WAIT, i] = state[WARM, i]
+            state[WAIT, i] = state[WARM, i] + max(0.0, state[RISE, i] - state[RISEK, i] - 1.0)
             _watch_anew(state, i)
         elif state[ON, i] == 0.0 or r != state[TPREV, i]:
             # a start or a target step: the drive for the new target from the tip per volt the
@@ -152,13 +155,18 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 a = r / state[GHAT, i]
             else:  # the model's drive, aimed low: its finger is a guess, feedback brings it up
                 a = START * r * state[FF, i]
+            if state[ON, i] == 0.0:
+                state[RISEK, i] = 0.0
+                rising = state[RISE, i] > 0.0
             state[ON, i] = 1.0
             state[TPREV, i] = r
-            state[WAIT, i] = state[WARM, i]
+            # the estimate answers the command once the rise has reached it and a window has passed
+            state[WAIT, i] = state[WARM, i] + max(0.0, state[RISE, i] - state[RISEK, i] - 1.0)
             _watch_anew(state, i)
         elif state[WAIT, i] > 0.0:
             state[WAIT, i] -= 1.0
-            continue
+            if not rising:
+                continue
         else:
             # every block from here on the estimate holds nothing but the present command: watch
             # it until it has been steady for HOLD blocks, then correct on the run's mean
@@ -220,6 +228,9 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if state[SAT, i] != 0.0:
             status |= CONTROL_SATURATED
         state[CMD, i] = a
+        if rising:  # the start's rise: block by block along a raised cosine to the command
+            state[RISEK, i] += 1.0
+            a = a * 0.5 * (1.0 - math.cos(math.pi * state[RISEK, i] / state[RISE, i]))
         pending[P_AMP, b] = a
         pending[P_RAMP, b] = ramp
         pending[P_FLAG, b] = 1.0

@@ -52,6 +52,7 @@ from ._kernels import (
     N_INDEX,
     N_STATE,
     N_TARGET,
+    RISE,
     OBS_CH,
     OBS_SLOT,
     TARGET,
@@ -110,6 +111,13 @@ class AmplitudeController:
         Blocks the plant rings after a start or a target step (its slowest loaded mode's time
         constant, from the model): the first estimate is taken after the window and this; it
         also sets the stretch (:func:`steady_blocks`).
+    rise : int
+        Blocks a tone's start (or a correction by more than ``BIG_STEP``) rises over to its
+        command, along a raised cosine (0 or 1: within one block, a ramp of ``block`` samples). A
+        step of drive excites the loaded beam's modes, which beat with the tone and ring for their
+        decay time; a rise of ``T`` leaves of a mode ``df`` away from the tone about
+        ``|cos(pi df T) / (1 - 4 (df T)^2)|`` of what a step leaves (1/15 at ``df T = 2``), at the
+        cost of ``T`` before the next estimate.
 
     Attributes
     ----------
@@ -120,7 +128,7 @@ class AmplitudeController:
     """
 
     def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
-                 latency: int, window, block: int, ring: int = 0):
+                 latency: int, window, block: int, ring: int = 0, rise: int = 0):
         n = len(bank_index)
         self.n = n
         self.index = np.zeros((N_INDEX, n), dtype=np.int64)
@@ -147,6 +155,7 @@ class AmplitudeController:
             self.warm = np.array([d[1] for d in designs], dtype=np.int64)
             self.hold = np.array([steady_blocks(int(x), self.ring) for x in w], dtype=np.int64)
         self.block = int(block)
+        self.rise = max(0, int(rise))
         self.reset()
 
     @property
@@ -164,6 +173,7 @@ class AmplitudeController:
         self.state[GAIN] = self.gain
         self.state[WARM] = self.warm
         self.state[HOLD] = self.hold
+        self.state[RISE] = self.rise
         self.target[TARGET] = self.targets0
         self.target[ENABLE] = 0.0
 

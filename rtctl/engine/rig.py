@@ -240,8 +240,9 @@ class Rig:
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
             # each tone waits for its own channel's window, in whole blocks
             window = -(-obs.windows[c_] // self.block)
+            rise = int(round(scene.control.rise_s * self.fs / self.block))
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
-                                      ring)
+                                      ring, rise)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)

@@ -83,19 +83,26 @@ def _whole_periods(f, fs) -> int:
 #: leak more into the estimate (120 Hz over 400 samples instead of 800: a lifted beam with half the
 #: damping settled 29 ms later after lift-off, for 4-12 ms gained elsewhere; bench/control_sweep.py)
 SHORTEN = 2
+#: ... but a shortest window at least this long (s) is taken even at twice: it already averages
+#: the loaded beam's ring (tens of ms), and a window this long is what sets how soon the loop sees
+#: a change (35 + 45 Hz: one 10 Hz beat, 100 ms, by least squares against 200 ms of whole periods
+#: of both: under a finger whose slow branch still drifts, -3.8 % left at the end of a 1 s segment
+#: and 750 ms to come within 5 %, against within 1.2 % and 250-450 ms; bench/control_sweep.py)
+LONG_WINDOW_S = 0.05
 #: nor does it make the lock-ins' hop shorter than this (each hop costs the ring update once more
 #: per block for every slot of the group): a window of whole periods that would need it is read by
 #: least squares on the block grid instead (48000 / 601 Hz: 608 samples, not 601 with a hop of 1)
 MIN_HOP = 8
 
 
-def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shorten=SHORTEN):
+def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shorten=SHORTEN,
+                  long_s=LONG_WINDOW_S):
     """Per channel, a lock-in window over which its own tones are read without leakage from one
     another, not forced long by the block grid, and the hop that lets every channel have it.
 
     A channel's window is :func:`tone_window` on the block grid (whole periods of its tones, a
     multiple of ``block``), unless that is more than ``shorten`` times the shortest window without
-    leakage, which is then taken: either the fewest samples holding whole periods of all its tones
+    leakage, or at least twice a shortest window of ``long_s`` or more, which is then taken: either the fewest samples holding whole periods of all its tones
     (80 Hz: 600 samples at 48 kHz, where multiples of a 32-sample block need 2400), or, read by
     least squares, a multiple of ``block`` of at least one period of their closest spacing and of
     the lowest tone (a 235 + 265 Hz pair: 1600 samples, one beat period, against 9600 for whole
@@ -116,6 +123,8 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
     max_cond : float
     shorten : float
         See :data:`SHORTEN`.
+    long_s : float
+        See :data:`LONG_WINDOW_S`.
 
     Returns
     -------
@@ -147,7 +156,7 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
             wl = block * math.ceil(span / block - 1e-9)
             if wl < w and np.linalg.cond(lsq_gram(row, wl, fs) / (0.5 * wl)) <= max_cond:
                 w, lstsq[c] = wl, True
-        if w0 > shorten * w:
+        if w0 > shorten * w or (w0 >= 2 * w and w >= long_s * fs):
             windows[c] = w
         else:
             lstsq[c] = False
