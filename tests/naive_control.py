@@ -5,10 +5,10 @@ import math
 from rtctl.control._kernels import (
     A0,
     AGREE,
-    BIG_STEP,
     ALL,
     AMAX,
     BANK,
+    BIG_STEP,
     CHANNEL,
     CMD,
     DEADBAND,
