@@ -289,8 +289,8 @@ def main(argv=None) -> int:
                 print(f"  {c['label']:<28} calibrated {'yes' if c['calibrated'] else 'no ':<3}: {c['wall_s']:.1f} s, "
                       f"{sum(len(r['misses']) for r in c['tones'])} misses {c.get('error') or ''}", file=sys.stderr)
     cal = [c for c in cases if c["calibrated"]]
-    result = {"scene": SCENE, "set": a.set, "duration_s": DURATION, "events": [{"at": at, "set": s} for at, s in EVENTS],
-              "wall_s": time.perf_counter() - t0, "cases": cases,
+    result = {"scene": SCENE, "set": a.set, "duration_s": DURATION,
+              "events": [{"at": at, "set": s} for at, s in EVENTS], "wall_s": time.perf_counter() - t0, "cases": cases,
               "calibrated_tones": len(TONES) * len(cal),
               "calibrated_tones_meeting": sum(not r["misses"] for c in cal for r in c["tones"]),
               "beyond_aim": [f"{c['label']}: {r['name']} {r['freq_hz']:g} Hz, {x}" for c in cal for r in c["tones"]

@@ -3,10 +3,12 @@
 import math
 
 from rtctl.control._kernels import (
+    A0,
     AGREE,
     ALL,
     AMAX,
     BANK,
+    BIG_STEP,
     CHANNEL,
     CMD,
     DEADBAND,
@@ -25,6 +27,7 @@ from rtctl.control._kernels import (
     OBS_CH,
     OBS_SLOT,
     ON,
+    OUT,
     PATIENCE,
     REF,
     RISE,
@@ -53,7 +56,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         col = state[:, i]
         if target[ENABLE, i] == 0:
             if col[ON]:
-                col[ON] = col[CMD] = 0.0
+                col[ON] = col[CMD] = col[OUT] = 0.0
                 pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = 0.0, ramp, 1.0
             continue
         r = target[TARGET, i]
@@ -80,7 +83,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         elif starting or r != col[TPREV]:
             a = r / col[GHAT] if col[GHAT] > 0 else START * r * col[FF]
             if starting:
-                col[RISEK], rising = 0.0, col[RISE] > 0
+                col[RISEK], col[A0], rising = 0.0, 0.0, col[RISE] > 0
             col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
             col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
         elif col[WAIT] > 0:
@@ -124,6 +127,9 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             a *= step
             col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
             col[WAIT] = col[WARM]
+            if not 1 / BIG_STEP <= step <= BIG_STEP and col[RISE] > 1:
+                col[A0], col[RISEK], rising = col[OUT], 0.0, True
+                col[WAIT] += col[RISE] - 1
         if a >= col[AMAX]:
             a = col[AMAX]
             col[SAT] = 1.0 if (col[EST] < r or col[WAIT] > 0) else 0.0
@@ -134,6 +140,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         col[CMD] = a
         if rising:
             col[RISEK] += 1
-            a *= (1 - math.cos(math.pi * col[RISEK] / col[RISE])) / 2
+            a = col[A0] + (a - col[A0]) * (1 - math.cos(math.pi * col[RISEK] / col[RISE])) / 2
+        col[OUT] = a
         pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = a, ramp, 1.0
     return status

@@ -257,3 +257,33 @@ def test_a_start_rises_along_a_raised_cosine_then_waits_a_window(rise):
     # the plant is half the model: feedback brings the drive to the target's without crossing it
     assert drives[-1] == pytest.approx(5e-6 / 5e-8, rel=1e-3)
     assert max(loop.truth[-1]) == pytest.approx(5e-6, rel=1e-3) and np.max(loop.truth) <= 5e-6 * (1 + 1e-9)
+
+
+def test_a_big_correction_rises_from_the_present_drive_a_small_one_steps():
+    # a plant 5x weaker than the model: the first correction is the largest allowed (x MAX_STEP),
+    # more than BIG_STEP, so it rises from the present drive along the same raised cosine as a
+    # start and the next estimate waits for the rise's end; the last one (5 / 0.7 / 4 = x1.79)
+    # goes in one block
+    from rtctl.control._kernels import BIG_STEP
+
+    rise, latency, window, target = 9, 1, 6, 2e-6
+    loop = Loop([2e-8], [1e-7], [target], latency=latency, window=window)
+    loop.ctl.rise = rise
+    loop.ctl.reset()
+    loop.ctl.target[ENABLE] = 1.0
+    d = []
+    for _ in range(200):
+        loop.block()
+        d.append(loop.pending[P_AMP, 0])
+    d = np.array(d)
+    changes = np.flatnonzero(np.diff(d[rise - 1:]) != 0) + rise  # first block of each new command
+    k0 = changes[0]
+    a0, a1 = d[k0 - 1], d[k0 + rise - 1]
+    assert a0 == START * target / 1e-7 and a1 / a0 == pytest.approx(MAX_STEP, rel=1e-12) and MAX_STEP > BIG_STEP
+    k = np.arange(1, rise + 1)
+    np.testing.assert_allclose(d[k0:k0 + rise], a0 + (a1 - a0) * (1 - np.cos(np.pi * k / rise)) / 2, rtol=1e-14)
+    assert np.all(d[k0 + rise - 1:k0 + rise + design(latency, window)[1]] == a1)
+    k1 = [c for c in changes if c >= k0 + rise][0]
+    assert d[k1] / d[k1 - 1] == pytest.approx(5 / START / MAX_STEP, rel=1e-9) and 5 / START / MAX_STEP < BIG_STEP
+    assert np.all(d[k1:] == d[k1]) and d[k1] == pytest.approx(target / 2e-8, rel=1e-9)
+    assert np.max(loop.truth) <= target * (1 + 1e-9)

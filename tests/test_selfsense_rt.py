@@ -171,9 +171,9 @@ def test_image_model_matches_a_converged_plant(f, load):
 
 def test_short_windows_by_hand():
     """On the block grid unless that is more than twice the shortest window without leakage (or
-    twice a shortest window of 50 ms or more): whole periods on the sample grid (fs / f's reduced numerator, least common multiple over a
-    channel's tones), or one period of the closest spacing by least squares; the hop the largest
-    divisor of the block dividing them all."""
+    twice a shortest window of 50 ms or more): whole periods on the sample grid (fs / f's reduced
+    numerator, least common multiple over a channel's tones), or one period of the closest spacing
+    by least squares; the hop the largest divisor of the block dividing them all."""
     from rtctl.selfsense.rt import short_windows
 
     w, lsq, hop = short_windows([[2.0], [10.0], [40.0], [120.0], [250.0]], FS, BLOCK)

@@ -31,10 +31,12 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  RSUM,    # sum of the present stretch's tip per volt of each window (tip over the drive's lock-in)
  RRUN,    # windows in it
  RREF,    # the mean of the stretch before, m/V (0: none yet)
- RISE,    # blocks a start rises over (raised cosine; 0 or 1: within one block)
+ RISE,    # blocks a start (or a big correction) rises over (raised cosine; 0 or 1: within one block)
  RISEK,   # blocks of the present rise done
- ) = range(26)
-N_STATE = 26
+ A0,      # the drive the present rise started from, V
+ OUT,     # the drive last written, V
+ ) = range(28)
+N_STATE = 28
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -65,6 +67,12 @@ START = 0.7
 #: learned only while that drive is at least this share of the command: a window still filling
 #: with a starting tone, or holding little drive, gives a ratio dominated by noise
 LIVE_DRIVE = 0.25
+#: a correction that changes the command by more than this factor (either way) rises to it as a
+#: start does (``RISE``): its step of drive rings in a loaded mode beside the tone as a start's
+#: does (a finger landing cuts a 1 kHz tip 20-fold; the corrections by 4x that follow rang up to
+#: +11 % over the target). Smaller steps go in one block: the rise's wait would add to every
+#: fine correction (the 120 Hz start's second command came 4-8 ms too late).
+BIG_STEP = 2.0
 #: an error smaller than this is left alone: a correction blinds the loop for a window, and the
 #: loop then answers a change of the plant a window later
 DEADBAND = 0.002
@@ -112,6 +120,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             if state[ON, i] != 0.0:  # switched off: ramp to silence
                 state[ON, i] = 0.0
                 state[CMD, i] = 0.0
+                state[OUT, i] = 0.0
                 pending[P_AMP, b] = 0.0
                 pending[P_RAMP, b] = ramp
                 pending[P_FLAG, b] = 1.0
@@ -157,6 +166,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 a = START * r * state[FF, i]
             if state[ON, i] == 0.0:
                 state[RISEK, i] = 0.0
+                state[A0, i] = 0.0
                 rising = state[RISE, i] > 0.0
             state[ON, i] = 1.0
             state[TPREV, i] = r
@@ -220,6 +230,11 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             a = a * step
             _watch_anew(state, i)
             state[WAIT, i] = state[WARM, i]  # judge this command only once the estimate is all of it
+            if (step > BIG_STEP or step * BIG_STEP < 1.0) and state[RISE, i] > 1.0:
+                state[A0, i] = state[OUT, i]  # from the drive now, not from 0
+                state[RISEK, i] = 0.0
+                state[WAIT, i] += state[RISE, i] - 1.0
+                rising = True
         if a >= state[AMAX, i]:
             a = state[AMAX, i]
             state[SAT, i] = 1.0 if (state[EST, i] < r or state[WAIT, i] > 0.0) else 0.0
@@ -228,9 +243,10 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if state[SAT, i] != 0.0:
             status |= CONTROL_SATURATED
         state[CMD, i] = a
-        if rising:  # the start's rise: block by block along a raised cosine to the command
+        if rising:  # block by block along a raised cosine from the last drive to the command
             state[RISEK, i] += 1.0
-            a = a * 0.5 * (1.0 - math.cos(math.pi * state[RISEK, i] / state[RISE, i]))
+            a = state[A0, i] + (a - state[A0, i]) * 0.5 * (1.0 - math.cos(math.pi * state[RISEK, i] / state[RISE, i]))
+        state[OUT, i] = a
         pending[P_AMP, b] = a
         pending[P_RAMP, b] = ramp
         pending[P_FLAG, b] = 1.0

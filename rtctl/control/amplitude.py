@@ -52,9 +52,9 @@ from ._kernels import (
     N_INDEX,
     N_STATE,
     N_TARGET,
-    RISE,
     OBS_CH,
     OBS_SLOT,
+    RISE,
     TARGET,
     WARM,
 )

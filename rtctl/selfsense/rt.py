@@ -102,15 +102,16 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
 
     A channel's window is :func:`tone_window` on the block grid (whole periods of its tones, a
     multiple of ``block``), unless that is more than ``shorten`` times the shortest window without
-    leakage, or at least twice a shortest window of ``long_s`` or more, which is then taken: either the fewest samples holding whole periods of all its tones
-    (80 Hz: 600 samples at 48 kHz, where multiples of a 32-sample block need 2400), or, read by
-    least squares, a multiple of ``block`` of at least one period of their closest spacing and of
-    the lowest tone (a 235 + 265 Hz pair: 1600 samples, one beat period, against 9600 for whole
-    periods of both), if its condition number (as :class:`~rtctl.dsp.lockin.LockIn` reports it)
-    is within ``max_cond``. The hop, shared by the channels' lock-ins, is the largest divisor of
-    ``block`` dividing every window, so that each window still ends with the block; a window of
-    whole periods that would need a hop under :data:`MIN_HOP` is not taken (least squares on the
-    block grid, over at least one period of the lowest tone, may be).
+    leakage, or at least twice a shortest window of ``long_s`` or more, which is then taken: either
+    the fewest samples holding whole periods of all its tones (80 Hz: 600 samples at 48 kHz, where
+    multiples of a 32-sample block need 2400), or, read by least squares, a multiple of ``block`` of
+    at least one period of their closest spacing and of the lowest tone (a 235 + 265 Hz pair: 1600
+    samples, one beat period, against 9600 for whole periods of both), if its condition number (as
+    :class:`~rtctl.dsp.lockin.LockIn` reports it) is within ``max_cond``. The hop, shared by the
+    channels' lock-ins, is the largest divisor of ``block`` dividing every window, so that each
+    window still ends with the block; a window of whole periods that would need a hop under
+    :data:`MIN_HOP` is not taken (least squares on the block grid, over at least one period of the
+    lowest tone, may be).
 
     Parameters
     ----------
