@@ -127,7 +127,8 @@ def main():
         print(json.dumps(dict(fs=FS, block=BLOCK, channels=N_CH, blocks=args.blocks, against=args.against,
                               results=rows), indent=None if args.json else 2))
         if not args.json:
-            print(f"\n{'case':12s} {args.against[:10]:>10s} {'now':>9s} {'speedup':>8s}   (us per block, medians of 15)")
+            print(f"\n{'case':12s} {args.against[:10]:>10s} {'now':>9s} {'speedup':>8s}"
+                  "   (us per block, medians of 15)")
             for r in rows:
                 print(f"{r['case']:12s} {r['us_per_block_at_rev']:10.2f} {r['us_per_block']:9.2f} {r['speedup']:8.2f}")
         return
