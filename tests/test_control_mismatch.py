@@ -105,14 +105,13 @@ def test_steady_amplitude_within_2_pct_of_target(runs, corner, segment):
 
 #: Where the loop is known to miss a clause, and why (docs/control.md, "Limits"); every other tone
 #: and segment must meet it. (corner, segment, tone) -> the reason.
-NEAR_RESONANCE = ("1 kHz on a beam whose loaded first resonance is near it: a tone switched on or a finger "
-                  "event rings in the truth itself for longer than 50 ms")
+NEAR_RESONANCE = ("1 kHz on a beam whose loaded first resonance is near it: a finger event rings in the truth "
+                  "itself for longer than 50 ms (a start rises over control.rise_s and meets every clause)")
 SETTLE_MISSES = {
-    **{("low", seg, "1000 Hz"): NEAR_RESONANCE for seg in ("start", "lifted", "back")},
+    **{("low", seg, "1000 Hz"): NEAR_RESONANCE for seg in ("lifted", "back")},
     ("high", "back", "1000 Hz"): NEAR_RESONANCE,
 }
 OVERSHOOT_MISSES = {
-    ("low", "start", "1000 Hz"): NEAR_RESONANCE,
     **{(c, "lifted", "1000 Hz"): NEAR_RESONANCE + " (lifted, the beam's free resonance rings)" for c in CORNERS},
 }
 
