@@ -550,7 +550,7 @@ SCENE = Table(
                 "margin_db": Key("float", 6.0, "dB", "target = threshold * 10^(margin_db/20)", -40.0, 60.0),
                 "observe": Key("bool", False, "", "run the self-sensing observer in the block step and trace `estimated_um` (bimorph groups with segment currents; implied by mode = 'closed')"),
                 "calibration": Key("str", "", "", "calibration file written by `rtctl calibrate` (relative to the scene file, else to the working directory): the rig's models (limiter, observer, controller) take its fitted factors; \"\" = the scene's nominal values"),
-                "rise_s": Key("float", 0.012, "s", "closed loop: each tone starts by rising to its first drive along a raised cosine this long (block by block), and its first estimate waits for the rise: a start within one block rings in a loaded beam mode near the tone (+12 ... +33 % over the target at 500 Hz and 1 kHz beside a loaded resonance; 0.02 s removes that, and delays every start by as much); 0 = within one block", 0.0, 1.0),
+                "rise_s": Key("float", 0.012, "s", "closed loop: a tone's start, and a correction of its drive by more than 2x, rises along a raised cosine this long (block by block), and the next estimate waits for the rise: a step of drive rings in a loaded beam mode near the tone (+11 ... +33 % over the target at 500 Hz and 1 kHz beside a loaded resonance with a start in one block); 0 = within one block", 0.0, 1.0),
                 "calibrate": Key("str", "off", "", "auto: measure and fit a calibration with the finger lifted before the run (written to the run's out directory as calibration.json) and use it", choices=("off", "auto")),
             },
             "amplitude targets and control",
