@@ -94,7 +94,10 @@ def test_ctrl_c_fades_to_zero_and_keeps_the_trace(tmp_path):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "rtctl.cli", "run", "line-bimorph-5", "--realtime", "--duration", "60",
            "--out", str(tmp_path), "--no-plot", "--quiet"]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    # a shell that started the suite in the background leaves SIGINT ignored, and a child inherits
+    # that: give it the default disposition, as a terminal's Ctrl-C finds it
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     trace = tmp_path / "trace" / "blocks.bin"
     t0 = time.time()
     while time.time() - t0 < 120 and not (trace.exists() and trace.stat().st_size > 200_000):
