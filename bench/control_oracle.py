@@ -118,7 +118,7 @@ def figures(device: dict) -> list[dict]:
 
 def _misses(fig: dict, required: float) -> set:
     out = set()
-    if fig["settle_ms"] is None or fig["settle_ms"] > required:
+    if cs.late(fig["settle_ms"], required):
         out.add("settle")
     if not fig["overshoot_pct"] < cs.OVERSHOOT_PCT:
         out.add("overshoot")

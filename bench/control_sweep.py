@@ -202,7 +202,7 @@ def judge(row: dict) -> dict:
                 f"{sg['segment']}"
         if sg["error_pct"] is None or abs(sg["error_pct"]) > STEADY_PCT:
             misses.append(f"{where}: steady error {fmt(sg['error_pct'], '+.2f')} % (limit {STEADY_PCT:g} %)")
-        if sg["settle_ms"] is None or sg["settle_ms"] > sg["required_ms"]:
+        if late(sg["settle_ms"], sg["required_ms"]):
             misses.append(f"{where}: within 5 % after {fmt(sg['settle_ms'], '.0f')} ms "
                           f"(required {sg['required_ms']:.0f} ms)")
         if not sg["overshoot_pct"] < OVERSHOOT_PCT:
@@ -219,6 +219,13 @@ def judge(row: dict) -> dict:
                      and math.isclose(row["error_pct"], 100.0 * (true / row["target_um"] - 1.0), rel_tol=1e-9))
     row["saturation_right"] = row["saturated"] == (not last["reachable"])
     return row
+
+
+def late(settle_ms, required_ms) -> bool:
+    """Whether a settle time misses its bound (None: never settled). The settle times fall on
+    half-window steps of a time axis built from sample counts: one that lands on the bound by
+    construction may read a few ulps over it."""
+    return settle_ms is None or settle_ms > required_ms * (1.0 + 1e-9)
 
 
 def fmt(v, spec: str) -> str:
@@ -257,7 +264,7 @@ def print_table(cases: list[dict]) -> None:
                 mark = "!" if e is None or abs(e) > STEADY_PCT else "~" if abs(e) > AIM_PCT else ""
                 cells.append(f"{fmt(e, '+.1f')}{mark} "
                              f"{fmt(st, '.0f')}/{sg['required_ms']:.0f}"
-                             f"{'!' if st is None or st > sg['required_ms'] else ''} "
+                             f"{'!' if late(st, sg['required_ms']) else ''} "
                              f"{ov:+.0f}{'!' if not ov < OVERSHOOT_PCT else ''}")
             verdict = "-" if not c["calibrated"] else ("meets" if not r["misses"] else f"MISSES {len(r['misses'])}")
             print(f"{c['label']:<28}{'yes' if c['calibrated'] else 'no':<4}{tone:<12}{r['target_um']:7.1f}  "
