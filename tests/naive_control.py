@@ -14,6 +14,7 @@ from rtctl.control._kernels import (
     DEADBAND,
     ENABLE,
     EST,
+    FAR,
     FF,
     FROZEN,
     GAIN,
@@ -24,12 +25,14 @@ from rtctl.control._kernels import (
     LIVE_DRIVE,
     MAX_STEP,
     NALL,
+    NOISE_Z,
     OBS_CH,
     OBS_SLOT,
     ON,
     OUT,
     PATIENCE,
     REF,
+    REFV,
     RISE,
     RISEK,
     RREF,
@@ -37,6 +40,7 @@ from rtctl.control._kernels import (
     RSUM,
     RUN,
     SAT,
+    SQ,
     START,
     SUM,
     TARGET,
@@ -79,13 +83,13 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if not starting and r != col[TPREV] and col[GLIVE] > 0:
             a = r / col[GLIVE]
             col[TPREV], col[WAIT] = r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
-            col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+            col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
         elif starting or r != col[TPREV]:
             a = r / col[GHAT] if col[GHAT] > 0 else START * r * col[FF]
             if starting:
                 col[RISEK], col[A0], rising = 0.0, 0.0, col[RISE] > 0
             col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
-            col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+            col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
         elif col[WAIT] > 0:
             col[WAIT] -= 1
             if not rising:
@@ -95,21 +99,24 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             col[EST] = y
             if not (0 < y < math.inf and r > 0):
                 col[FROZEN] = 1.0
-                col[REF] = col[SUM] = col[RUN] = col[ALL] = col[NALL] = 0.0
+                col[REF] = col[SUM] = col[SQ] = col[RUN] = col[ALL] = col[NALL] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             col[FROZEN] = 0.0
             col[GHAT] = y / a
             col[TRIES] += 1
             col[SUM] += y
+            col[SQ] += y * y
             col[RUN] += 1
             col[ALL] += y
             col[NALL] += 1
             if col[RUN] < col[HOLD]:
                 continue
-            mean, prev = col[SUM] / col[RUN], col[REF]
-            col[REF], col[SUM], col[RUN] = mean, 0.0, 0.0
-            if prev > 0 and abs(mean / prev - 1) <= AGREE:
+            mean, prev, prev_var = col[SUM] / col[RUN], col[REF], col[REFV]
+            var = max(col[SQ] / col[RUN] - mean * mean, 0.0) / col[RUN]
+            col[REF], col[REFV], col[SUM], col[SQ], col[RUN] = mean, var, 0.0, 0.0, 0.0
+            far_agree = abs(r / mean - 1) > FAR and abs(mean - prev) <= NOISE_Z * math.sqrt(var + prev_var)
+            if prev > 0 and (abs(mean / prev - 1) <= AGREE or far_agree):
                 if abs(r / mean - 1) <= AGREE:
                     mean = col[ALL] / col[NALL]
                 g = col[GAIN]
@@ -125,7 +132,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             if limited and step > 1:
                 step = 1.0
             a *= step
-            col[REF] = col[SUM] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+            col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
             col[WAIT] = col[WARM]
             if not 1 / BIG_STEP <= step <= BIG_STEP and col[RISE] > 1:
                 col[A0], col[RISEK], rising = col[OUT], 0.0, True

@@ -8,7 +8,7 @@ import pytest
 from naive_control import amplitude_control as naive
 
 from rtctl.control import AmplitudeController, amplitude_control, design
-from rtctl.control._kernels import CMD, ENABLE, MAX_STEP, SAT, START, TARGET
+from rtctl.control._kernels import CMD, ENABLE, MAX_STEP, REF, REFV, SAT, START, TARGET, TRIES, WAIT
 from rtctl.dsp._kernels import N_PEND, P_AMP
 from rtctl.safety import CONTROL_FROZEN, CONTROL_SATURATED
 
@@ -151,6 +151,7 @@ def test_kernel_matches_its_naive_twin(seed):
     twin = [a.copy() for a in (ctl.index, ctl.target, ctl.state)]
     pend_k, pend_n = np.zeros((N_PEND, n)), np.zeros((N_PEND, n))
     lim = np.zeros((3, 3), dtype=np.int64)
+    scale = 0.0  # the largest squared stretch mean so far
     for k in range(300):
         est = np.zeros((n, 1, 9, 2))
         est[:, 0, 0] = rng.normal(0, 2e-5, (n, 2))
@@ -169,7 +170,12 @@ def test_kernel_matches_its_naive_twin(seed):
         sk = amplitude_control(est, drive_est, ctl.index, ctl.target, ctl.state, pend_k, lim, float(BLOCK))
         sn = naive(est, drive_est, twin[0], twin[1], twin[2], pend_n, lim, float(BLOCK))
         assert sk == sn
-        np.testing.assert_allclose(ctl.state, twin[2], rtol=1e-12, atol=0)
+        rows = np.arange(ctl.state.shape[0]) != REFV
+        np.testing.assert_allclose(ctl.state[rows], twin[2][rows], rtol=1e-12, atol=0)
+        # a variance by subtraction (mean square less squared mean) is good to rounding of the
+        # squares, not of itself
+        scale = max(scale, np.max(twin[2][REF]) ** 2)
+        np.testing.assert_allclose(ctl.state[REFV], twin[2][REFV], rtol=0, atol=1e-12 * scale)
         np.testing.assert_allclose(pend_k, pend_n, rtol=1e-12, atol=0)
 
 
@@ -287,3 +293,94 @@ def test_a_big_correction_rises_from_the_present_drive_a_small_one_steps():
     assert d[k1] / d[k1 - 1] == pytest.approx(5 / START / MAX_STEP, rel=1e-9) and 5 / START / MAX_STEP < BIG_STEP
     assert np.all(d[k1:] == d[k1]) and d[k1] == pytest.approx(target / 2e-8, rel=1e-9)
     assert np.max(loop.truth) <= target * (1 + 1e-9)
+
+
+def _fed(stretches, target=1e-6, window=6, ring=48):
+    """One tone whose estimates are given: a filler until the controller reads its first fresh
+    estimate, then ``stretches`` (lists of HOLD estimates, m) one after the other. Returns the
+    controller and the commands: before the first given estimate and after each."""
+    ctl = AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [target], 1, window, BLOCK, ring)
+    ctl.target[ENABLE] = 1.0
+    est, drive_est = np.zeros((1, 1, 9, 2)), np.zeros((1, 1, 2))
+    pending, lim = np.zeros((N_PEND, 1)), np.zeros((3, 1), dtype=np.int64)
+
+    def call(y):
+        est[0, 0, 0, 0] = y
+        amplitude_control(est, drive_est, **ctl.args, pending=pending, lim_counts=lim, ramp=float(BLOCK))
+
+    call(0.5 * target)  # the start
+    while ctl.state[WAIT, 0] > 0.0:  # its wait: estimates not read
+        call(0.5 * target)
+    cmds = [ctl.state[CMD, 0]]  # the next call reads the first estimate of the first stretch
+    for y in (y for s in stretches for y in s):
+        call(y)
+        cmds.append(ctl.state[CMD, 0])
+    assert ctl.state[TRIES, 0] > 0 or np.any(np.diff(cmds))  # every estimate was read
+    return ctl, np.array(cmds)
+
+
+def _scatter(mean, rel, n):
+    """``n`` estimates (n even) of ``mean`` scattered by +-``rel``: their population variance is
+    (mean rel)^2."""
+    return [mean * (1.0 + rel * (-1) ** k) for k in range(n)]
+
+
+def _z(a, b):
+    """How many standard errors of their difference the means of two stretches lie apart (numpy's
+    variance of each, as if the estimates were independent)."""
+    return abs(np.mean(a) - np.mean(b)) / np.sqrt(np.var(a) / len(a) + np.var(b) / len(b))
+
+
+@pytest.mark.parametrize("far", [0.5, 0.13])
+def test_far_from_the_target_two_stretches_agree_within_their_scatter(far):
+    """A finger that landed: the tip far below the target (more than FAR, 10 %), its estimates
+    scattered (a tenth of the amplitude is read through the same current noise). Two stretches
+    whose means differ by more than AGREE but by less than NOISE_Z (2) standard errors agree; 2.5
+    standard errors do not: the correction comes at the end of the third stretch, on its mean."""
+    from rtctl.control._kernels import AGREE, HOLD
+
+    r = 1e-6
+    h = int(AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [r], 1, 6, BLOCK, 48).state[HOLD, 0])
+    assert h % 2 == 0
+    m3 = r / (1.0 + far)
+    err = 0.1 * m3 * np.sqrt(2.0 / h)  # the standard error of two stretches' difference at 10 % scatter
+    s3 = _scatter(m3, 0.1, h)
+    s2 = _scatter(m3 - 1.5 * err, 0.1 * m3 / (m3 - 1.5 * err), h)
+    s1 = _scatter(m3 + 1.0 * err, 0.1 * m3 / (m3 + 1.0 * err), h)
+    assert abs(np.mean(s2) / np.mean(s1) - 1.0) > AGREE and abs(np.mean(s3) / np.mean(s2) - 1.0) > AGREE
+    assert _z(s1, s2) == pytest.approx(2.5) and _z(s2, s3) == pytest.approx(1.5)
+    ctl, cmds = _fed([s1, s2, s3, _scatter(m3, 0.1, h)], target=r)
+    changed = np.flatnonzero(np.diff(cmds)) + 1
+    assert changed[0] == 3 * h, changed  # the last estimate of the third stretch
+    np.testing.assert_allclose(cmds[3 * h] / cmds[0], r / np.mean(s3), rtol=1e-9)
+
+
+def test_near_the_target_only_agree_counts():
+    """Within FAR (10 %) of the target, stretches that agree only within their scatter are not
+    corrected on (a correction on noise blinds the loop for a window): the command holds."""
+    from rtctl.control._kernels import HOLD
+
+    r = 1e-6
+    h = int(AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [r], 1, 6, BLOCK, 48).state[HOLD, 0])
+    m = r / 1.07
+    stretches = [_scatter(m * (1.0 + 0.06 * (k % 2)), 0.3, h) for k in range(6)]  # 6 % apart, < 1 error
+    assert all(_z(a, b) < 1.0 for a, b in zip(stretches, stretches[1:]))
+    _, cmds = _fed(stretches, target=r)
+    assert np.all(cmds == cmds[0])
+
+
+def test_a_window_sliding_over_a_change_never_agrees_within_its_scatter():
+    """Far below the target, estimates that fall along a ramp (a window sliding over a finger's
+    landing) spread within each stretch, but the stretches' means move by several standard errors
+    (sqrt(6 n) for n estimates): no correction until two stretches of the settled value agree,
+    then one on that value."""
+    from rtctl.control._kernels import HOLD
+
+    r = 1e-6
+    h = int(AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [r], 1, 6, BLOCK, 48).state[HOLD, 0])
+    ramp = list(np.linspace(0.6 * r, 0.1 * r, 4 * h))
+    flat = [0.1 * r] * (3 * h)
+    _, cmds = _fed([ramp[k * h:(k + 1) * h] for k in range(4)] + [flat], target=r)
+    changed = np.flatnonzero(np.diff(cmds)) + 1
+    assert changed[0] == 6 * h, changed  # the second stretch of the settled value
+    np.testing.assert_allclose(cmds[6 * h] / cmds[0], MAX_STEP, rtol=1e-12)  # 10x, capped
