@@ -40,6 +40,7 @@ from rtctl.control._kernels import (
     RSUM,
     RUN,
     SAT,
+    SCATTER,
     SQ,
     START,
     SUM,
@@ -115,7 +116,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             mean, prev, prev_var = col[SUM] / col[RUN], col[REF], col[REFV]
             var = max(col[SQ] / col[RUN] - mean * mean, 0.0) / col[RUN]
             col[REF], col[REFV], col[SUM], col[SQ], col[RUN] = mean, var, 0.0, 0.0, 0.0
-            far_agree = abs(r / mean - 1) > FAR and abs(mean - prev) <= NOISE_Z * math.sqrt(var + prev_var)
+            far_agree = (col[SCATTER] != 0 and abs(r / mean - 1) > FAR
+                         and abs(mean - prev) <= NOISE_Z * math.sqrt(var + prev_var))
             if prev > 0 and (abs(mean / prev - 1) <= AGREE or far_agree):
                 if abs(r / mean - 1) <= AGREE:
                     mean = col[ALL] / col[NALL]

@@ -331,17 +331,21 @@ def _z(a, b):
     return abs(np.mean(a) - np.mean(b)) / np.sqrt(np.var(a) / len(a) + np.var(b) / len(b))
 
 
-@pytest.mark.parametrize("far", [0.5, 0.13])
-def test_far_from_the_target_two_stretches_agree_within_their_scatter(far):
+@pytest.mark.parametrize("far, window", [(0.5, 6), (0.13, 6), (0.5, 30)])
+def test_far_from_the_target_two_stretches_agree_within_their_scatter(far, window):
     """A finger that landed: the tip far below the target (more than FAR, 10 %), its estimates
     scattered (a tenth of the amplitude is read through the same current noise). Two stretches
     whose means differ by more than AGREE but by less than NOISE_Z (2) standard errors agree; 2.5
-    standard errors do not: the correction comes at the end of the third stretch, on its mean."""
-    from rtctl.control._kernels import AGREE, HOLD
+    standard errors do not: the correction comes at the end of the third stretch, on its mean.
+    Only where a stretch spans a whole window (6 blocks, a stretch of 6): with a window of 30
+    (stretch 8) the estimates of a stretch overlap, their spread is not their noise, and the loop
+    waits for AGREE or PATIENCE."""
+    from rtctl.control._kernels import AGREE, HOLD, PATIENCE, WARM
 
     r = 1e-6
-    h = int(AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [r], 1, 6, BLOCK, 48).state[HOLD, 0])
-    assert h % 2 == 0
+    ctl0 = AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [r], 1, window, BLOCK, 48)
+    h = int(ctl0.state[HOLD, 0])
+    assert h % 2 == 0 and (h >= window) == (window == 6)
     m3 = r / (1.0 + far)
     err = 0.1 * m3 * np.sqrt(2.0 / h)  # the standard error of two stretches' difference at 10 % scatter
     s3 = _scatter(m3, 0.1, h)
@@ -349,8 +353,11 @@ def test_far_from_the_target_two_stretches_agree_within_their_scatter(far):
     s1 = _scatter(m3 + 1.0 * err, 0.1 * m3 / (m3 + 1.0 * err), h)
     assert abs(np.mean(s2) / np.mean(s1) - 1.0) > AGREE and abs(np.mean(s3) / np.mean(s2) - 1.0) > AGREE
     assert _z(s1, s2) == pytest.approx(2.5) and _z(s2, s3) == pytest.approx(1.5)
-    ctl, cmds = _fed([s1, s2, s3, _scatter(m3, 0.1, h)], target=r)
+    ctl, cmds = _fed([s1, s2, s3, _scatter(m3, 0.1, h)], target=r, window=window)
     changed = np.flatnonzero(np.diff(cmds)) + 1
+    if window > h:  # not on the third stretch: on the fourth, equal to it (AGREE), before PATIENCE
+        assert changed[0] == 4 * h < PATIENCE * (ctl0.state[WARM, 0] + 2 * h), changed
+        return
     assert changed[0] == 3 * h, changed  # the last estimate of the third stretch
     np.testing.assert_allclose(cmds[3 * h] / cmds[0], r / np.mean(s3), rtol=1e-9)
 

@@ -55,6 +55,7 @@ from ._kernels import (
     OBS_CH,
     OBS_SLOT,
     RISE,
+    SCATTER,
     TARGET,
     WARM,
 )
@@ -121,10 +122,11 @@ class AmplitudeController:
 
     Attributes
     ----------
-    gain, warm, hold : scalars, or ndarrays of shape (n,)
-        The correction exponent and the wait (:func:`design`) and the stretch
-        (:func:`steady_blocks`), in blocks: one each for one ``window``, per tone for a window per
-        tone.
+    gain, warm, hold, scatter : scalars, or ndarrays of shape (n,)
+        The correction exponent and the wait (:func:`design`), the stretch
+        (:func:`steady_blocks`), in blocks, and whether a stretch spans a whole window (1.0: the
+        spread of its estimates is their noise, and far from the target two stretches may agree
+        within it): one each for one ``window``, per tone for a window per tone.
     """
 
     def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
@@ -146,6 +148,7 @@ class AmplitudeController:
         if np.ndim(window) == 0:
             self.gain, self.warm = design(latency, window)
             self.hold = steady_blocks(window, self.ring)
+            self.scatter = float(self.hold >= max(1, int(window)))
         else:
             w = np.asarray(window)
             if w.shape != (n,) or not np.issubdtype(w.dtype, np.integer):
@@ -154,6 +157,7 @@ class AmplitudeController:
             self.gain = np.array([d[0] for d in designs])
             self.warm = np.array([d[1] for d in designs], dtype=np.int64)
             self.hold = np.array([steady_blocks(int(x), self.ring) for x in w], dtype=np.int64)
+            self.scatter = (self.hold >= np.maximum(1, w)).astype(float)
         self.block = int(block)
         self.rise = max(0, int(rise))
         self.reset()
@@ -173,6 +177,7 @@ class AmplitudeController:
         self.state[GAIN] = self.gain
         self.state[WARM] = self.warm
         self.state[HOLD] = self.hold
+        self.state[SCATTER] = self.scatter
         self.state[RISE] = self.rise
         self.target[TARGET] = self.targets0
         self.target[ENABLE] = 0.0
