@@ -215,7 +215,7 @@ def parts(st, calls, repeats):
     i = [a[k] for k in ("i_ref", "i_pend", "i_chan", "i_acc", "i_ring", "i_solve")]
     drive, sensed = a["delay"][0], a["sensed"]
     out = {}
-    for name, lk, x, o in (("drive", u, drive, a["u_out"]), ("current", i, sensed, a["i_out"])):
+    for name, lk, x, o in (("drive", u, drive, a["u_out"]), ("current", i, sensed, a["back"])):
         ref, pend, chan, acc, ring, solve = lk
         out[f"{name} lock-in"] = timed(rep_lockin, (*lk, x, o), calls, repeats)
         r2 = ref.copy()
