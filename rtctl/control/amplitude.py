@@ -8,27 +8,32 @@ change (one block more for the oscillator's ramp). The controller therefore work
 steps, per controlled tone:
 
 * at the start and at every target step: ``a = r / G``, with ``G`` the tip per volt the last fresh
-  estimate showed (what feedback learned, saturated or not), or the model's ``|G_model|`` before
-  the first estimate; then wait ``W`` blocks and the time constant of the plant's slowest loaded
-  mode (the switch-on transient rings that long: a beam under a finger, 31 ms for the line
-  display);
+  estimate showed (what feedback learned, saturated or not), or before the first estimate the
+  model's ``|G_model|`` aimed at ``START`` (70 %) of the target (its finger is a guess); a start
+  rises to it along a raised cosine over ``rise`` blocks (a step of drive rings in the loaded
+  beam's modes); then wait ``W`` blocks after the rise;
 * then watch every fresh estimate (one that holds nothing but the present command) in stretches
   of ``H`` blocks (:func:`steady_blocks`); once the means of two successive stretches agree within
   5 % the plant is steady (a window sliding over a change of the plant, the finger pressing or
   lifting, moves its estimate for a whole window: correcting on it would chase it; the loaded
-  beam's ripple averages out within a stretch); if no two agree for four times (``W`` + 2
-  stretches), correct anyway at half strength;
-* correct on the last stretch's mean ``y``: ``a <- a * (r / y) ** g`` (at most a factor of 4), then
-  wait ``W`` again. An error under 0.2 % is left alone and the watch goes on: a correction blinds
-  the loop for ``W``, so skipping needless ones lets it answer a change of the plant a window
-  sooner (``M + L + 2 H`` blocks after the change, rather than up to ``W`` more).
+  beam's ripple averages out within a stretch). More than 10 % from the target, and where a
+  stretch spans a whole window, two stretches within 2 standard errors of their difference (from
+  the spread within each) agree too: at a tenth of its amplitude after a finger lands the
+  estimate is noisy. If no two agree for four times (``W`` + 2 stretches), correct anyway at half
+  strength;
+* correct on the last stretch's mean ``y`` (within 5 % of the target, on the mean of every fresh
+  estimate of the command): ``a <- a * (r / y) ** g`` (at most a factor of 4; a correction by
+  more than 2x rises from the present drive as a start does), then wait ``W`` again. An error
+  under 0.2 % is left alone and the watch goes on: a correction blinds the loop for ``W``, so
+  skipping needless ones lets it answer a change of the plant a window sooner (``M + L + 2 H``
+  blocks after the change, rather than up to ``W`` more).
 
 With ``g = 1`` this is deadbeat for a static plant: one correction removes a model error up to a
 factor of four (a wild estimate cannot move the drive by more), and feedback never crosses the
 target (the feedforward alone is off by the model's error: calibrate the model to keep that
 small); a drifting or changing plant (the finger relaxing, pressing harder) is followed step by
 step. The design, done at build time, is the wait ``W`` from the tone's window and the latency
-(:func:`design`), and the stretch ``H`` and the ring time from the model.
+(:func:`design`), and the stretch ``H`` from the window and the model's ring time.
 
 Saturation: the command never exceeds the tone's share of ``max_voltage`` (the state *is* the
 command, so there is nothing to wind up) and does not grow while the limiter holds the channel
@@ -110,8 +115,9 @@ class AmplitudeController:
         Samples per block (each amplitude change ramps over one block).
     ring : int
         Blocks the plant rings after a start or a target step (its slowest loaded mode's time
-        constant, from the model): the first estimate is taken after the window and this; it
-        also sets the stretch (:func:`steady_blocks`).
+        constant, from the model): it sets the stretch (:func:`steady_blocks`, at least an
+        eighth of it). The wait after a command is the window and the latency alone (``WARM``):
+        two steady stretches are what keep a ring from being corrected on.
     rise : int
         Blocks a tone's start (or a correction by more than ``BIG_STEP``) rises over to its
         command, along a raised cosine (0 or 1: within one block, a ramp of ``block`` samples). A
