@@ -108,8 +108,10 @@ def test_steady_amplitude_within_2_pct_of_target(runs, corner, segment):
 NEAR_RESONANCE = ("1 kHz on a beam whose loaded first resonance is near it: a finger event rings in the truth "
                   "itself for longer than 50 ms (a start rises over control.rise_s and meets every clause)")
 SETTLE_MISSES = {
-    **{("low", seg, "1000 Hz"): NEAR_RESONANCE for seg in ("lifted", "back")},
-    ("high", "back", "1000 Hz"): NEAR_RESONANCE,
+    ("low", "lifted", "1000 Hz"): NEAR_RESONANCE + ": even the right drive switched in at the event's instant "
+                                  "takes 96-116 ms (bench/control_oracle.py)",
+    ("low", "back", "1000 Hz"): "1 kHz as the finger lands: the estimate reads ~20 % low for 20-35 ms after it "
+                                "(docs/control.md, Not done yet); 66 ms where the oracle after WARM takes 22 ms",
 }
 OVERSHOOT_MISSES = {
     **{(c, "lifted", "1000 Hz"): NEAR_RESONANCE + " (lifted, the beam's free resonance rings)" for c in CORNERS},
@@ -127,7 +129,7 @@ def test_within_5_pct_from_max_5_periods_or_50_ms_on(runs, corner, segment):
     bad = [f"{where(r, s)}: {sweep.fmt(s['settle_ms'], '.0f')} ms, required {s['required_ms']:.0f} ms"
            for r, s in segments(runs[corner], segment)
            if (corner, segment, tone_name(r)) not in SETTLE_MISSES
-           and (s["settle_ms"] is None or s["settle_ms"] > s["required_ms"])]
+           and sweep.late(s["settle_ms"], s["required_ms"])]
     assert not bad, f"{corner} corner, time to stay within 5 % of the target: " + "; ".join(bad)
 
 
