@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import control_sweep as cs
 import numpy as np
@@ -148,7 +149,7 @@ def main(argv=None) -> int:
         rows += figures(dev)
         if not a.json:
             print(f"  {cs.label(dev)}: done", file=sys.stderr)
-    closed = _closed(json.load(open(a.against))) if a.against else {}
+    closed = _closed(json.loads(Path(a.against).read_text())) if a.against else {}
     counts = {"closed": 0, "beam": 0, "latency": 0, "loop": 0}
     for r in rows:
         if not r["reachable"]:

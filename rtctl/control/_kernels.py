@@ -78,20 +78,13 @@ LIVE_DRIVE = 0.25
 BIG_STEP = 2.0
 #: far from the target (by more than this share) two stretches also agree when their means differ
 #: by no more than NOISE_Z standard errors of that difference (from the spread within each, as if
-#: the estimates were independent): a finger landing at 1 kHz cuts the tip ten-fold, at a tenth of
-#: its amplitude the estimates scatter by +-50 %, two stretches seldom agree within AGREE, and the
-#: loop waited for PATIENCE (40 ms). A window sliding over the change moves the mean between
-#: stretches by more than sqrt(12) of those errors (a ramp over a stretch of n blocks: sqrt(6 n)),
-#: so it still waits for the window to pass. Near the target only AGREE counts: agreement within
-#: noise there would correct on noise and blind the loop for a window each time. Only where a
-#: stretch spans at least one window (``SCATTER``): estimates from windows that overlap within a
-#: stretch spread by what the plant did over the stretch (a ring, the other tone of a beat pair
-#: read in the same least-squares window), not by noise; two beat-pair controllers corrected on
-#: each other's transients until they drove their sines at 12 and 38 V (-21 % at steady state on
-#: two devices of the full grid). On the closed-loop sweep's five devices (before SCATTER) FAR
-#: 0.1 / 0.2 / 0.35 left 6 / 7 / 8 of the 12 after-event misses an oracle correcting one window
-#: after the event avoids; NOISE_Z 1.5 as 2, 3 corrected on windows still sliding (four new
-#: misses: overshoot at 1 kHz under a pressing finger).
+#: the estimates were independent): after a finger lands at 1 kHz the tip is a tenth of its
+#: target, its estimates scatter by +-50 %, and two stretches seldom agree within AGREE. A window
+#: sliding over a change still moves the mean by more than sqrt(12) such errors between stretches,
+#: so the loop still waits for it to pass. Near the target only AGREE counts (agreement within
+#: noise would correct on noise). Only where a stretch spans a whole window (``SCATTER``): the
+#: estimates of overlapping windows spread by what the plant did (a ring, the other sine of a beat
+#: pair), not by noise. Figures: docs/control.md, "Stretches far from the target".
 FAR = 0.1
 NOISE_Z = 2.0
 #: an error smaller than this is left alone: a correction blinds the loop for a window, and the
