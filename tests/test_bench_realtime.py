@@ -65,3 +65,14 @@ def test_the_bench_goes_on_without_cyclictest_or_stress_ng(monkeypatch, capsys):
 def test_bad_arguments_are_one_line(capsys):
     assert br.main(["--seconds", "0"]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+@pytest.mark.skipif(br.shutil.which("cyclictest") is None, reason="cyclictest not installed (Debian: rt-tests)")
+@pytest.mark.parametrize("policy", ["other", "fifo"])
+def test_cyclictest_measures_under_the_policy_asked(policy):
+    # its -p switches cyclictest to SCHED_FIFO even as -p 0: the comparison must run as asked
+    r = br._cyclictest(br.shutil.which("cyclictest"), policy, 80, 1000, 400, -1)
+    if policy == "fifo" and "error" in r and "ran" not in r["error"]:
+        pytest.skip(f"SCHED_FIFO not permitted here: {r['error']}")
+    assert "error" not in r, r
+    assert r["thread_policy"] == policy and r["parsed"]["total"] == 400

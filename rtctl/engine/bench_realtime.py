@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
 import shutil
 import subprocess
@@ -161,16 +162,51 @@ def _loop_total(parts: list) -> dict:
 
 
 def _cyclictest(exe: str, policy: str, priority: int, interval_us: int, loops: int, cpu: int) -> dict:
+    # cyclictest's -p (even -p 0) switches its policy to SCHED_FIFO, priority 0 then defaults to 2:
+    # under SCHED_OTHER it is left out, and the measuring thread's policy is read back from /proc.
     cmd = [exe, "-q", "-m", "-t", "1", "-i", str(interval_us), "-l", str(loops), "-h", str(HIST_US),
-           f"--policy={policy}", "-p", str(priority if policy == "fifo" else 0)]
+           f"--policy={policy}"]
+    if policy == "fifo":
+        cmd += ["-p", str(priority)]
     if cpu >= 0:
         cmd += ["-a", str(cpu)]
-    p = subprocess.run(cmd, capture_output=True, text=True)
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = _thread_policy(p)
+    out, err = p.communicate()
     try:
-        return {"parsed": parse_cyclictest(p.stdout), "cmd": " ".join(cmd)}
+        res = {"parsed": parse_cyclictest(out), "cmd": " ".join(cmd)}
     except ValueError:
-        why = (p.stderr.strip().splitlines() or [f"exit status {p.returncode}"])[-1]
+        why = (err.strip().splitlines() or [f"exit status {p.returncode}"])[-1]
         return {"error": why, "cmd": " ".join(cmd)}
+    want = POLICIES[policy]
+    if seen is not None and seen != want:
+        name = {v: k for k, v in POLICIES.items()}.get(seen, str(seen))
+        return {"error": f"cyclictest's measuring thread ran {name}, not {policy}", "cmd": " ".join(cmd)}
+    res["thread_policy"] = policy if seen is not None else None
+    return res
+
+
+#: Linux scheduling policy numbers (``/proc/PID/task/TID/stat`` field 41).
+POLICIES = {"other": 0, "fifo": 1}
+
+
+def _thread_policy(p, timeout: float = 2.0):
+    """The scheduling policy of the one thread of process ``p`` that is not its main thread
+    (cyclictest's measuring thread), read from /proc a moment after it exists (it sets its own
+    policy as it starts); None where it cannot be read."""
+    t_end = time.monotonic() + timeout
+    while p.poll() is None and time.monotonic() < t_end:
+        try:
+            tids = [t for t in os.listdir(f"/proc/{p.pid}/task") if int(t) != p.pid]
+            if tids:
+                time.sleep(0.1)
+                with open(f"/proc/{p.pid}/task/{tids[0]}/stat") as f:
+                    stat = f.read()
+                return int(stat[stat.rindex(")") + 2:].split()[38])  # field 41; comm may hold spaces
+        except (OSError, ValueError, IndexError):
+            return None
+        time.sleep(0.005)
+    return None
 
 
 def _cyclictest_total(parts: list, period_us: float, slack_us: float) -> dict:
