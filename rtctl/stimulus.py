@@ -94,6 +94,17 @@ def _check_tones(scene, offsets: dict) -> None:
         pulsed.add(ch)
 
 
+def _last_per_tone(items) -> tuple:
+    """A block's ``[(tone, freq, amp, ramp)]`` as :meth:`OscillatorBank.set_many`'s arrays, each
+    tone once with its last entry's values (what setting them one by one would leave)."""
+    last = {}
+    for i, f, amp, r in items:
+        last[i] = (f, amp, r)
+    idx = np.fromiter(last, dtype=np.int64, count=len(last))
+    f, amp, r = (np.array(c) for c in zip(*last.values()))
+    return idx, f.astype(np.float64), amp.astype(np.float64), r.astype(np.int64)
+
+
 class Stimulus:
     """The synthesis a scene needs and the parameter changes due at each block.
 
@@ -160,6 +171,7 @@ class Stimulus:
         self.voices: list = []  # (Voice, closed, receptor) per stimulus.play partial and channel
         if scene.stimulus.play:
             self._add_voices(scene, offsets, tones, chans, freqs, phases)
+        self._sig_arrays = {k: _last_per_tone(items) for k, items in self._sig_schedule.items()}
         self.tones = tones
         self.targets_um = np.full(self.n_channels, np.nan)
         for tone in tones:
@@ -228,8 +240,9 @@ class Stimulus:
             if self.start_hook is not None and self.start_hook(i):
                 continue
             self.bank.set(i, amp=amp, ramp=ramp)
-        for i, f, amp, r in self._sig_schedule.get(k, ()):
-            self.bank.set(i, freq=f, amp=amp, ramp=r)
+        sig = self._sig_arrays.get(k)
+        if sig is not None:
+            self.bank.set_many(*sig)
         if self.target_hook is not None:  # the rig sets it whenever there are closed-loop voices
             for i, target_m in self._target_schedule.get(k, ()):
                 self.target_hook(i, target_m)

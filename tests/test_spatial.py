@@ -1,6 +1,7 @@
 """The spatializer: each channel's gain against the roll-off laws worked by hand, on a 1x5 line
 and a 5x5 array, played as levels through the oscillator bank."""
 
+import copy
 import math
 
 import numpy as np
@@ -97,3 +98,20 @@ def test_bad_spatial_tables_are_refused_in_one_line(keys, words):
     with pytest.raises(SceneError) as e:
         render(spatial(**keys), duration=0.05)
     assert words in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_played_sweep_leaves_the_bank_as_one_set_per_schedule_entry_would():
+    # the schedule is applied as one write per parameter row: every block's pending tones must be
+    # what setting each entry in order (the last of a tone's entries wins) leaves
+    s = scene.load("array-bimorph-5x5")
+    st = Stimulus(s, {"array": 0}, 25, 48000.0, 32)
+    twin = copy.deepcopy(st.bank)
+    repeated = 0
+    for k in sorted(st._sig_schedule):
+        items = st._sig_schedule[k]
+        repeated += len(items) - len({i for i, *_ in items})
+        st.apply(k)
+        for i, f, amp, r in items:
+            twin.set(i, freq=f, amp=amp, ramp=r)
+        np.testing.assert_array_equal(st.bank.pending, twin.pending)
+    assert len(st._sig_schedule) > 100 and repeated > 0  # some blocks set a tone twice

@@ -265,6 +265,32 @@ class OscillatorBank(Routed):
         self._write(_k.P_RAMP, i, self._ramp(ramp))
         self._write(_k.P_FLAG, i, 1.0)
 
+    def set_many(self, idx, freq, amp, ramp):
+        """:meth:`set` of several tones at once: tone ``idx[j]`` ramps to ``freq[j]`` (Hz) and
+        ``amp[j]`` over ``ramp[j]`` samples. Each tone at most once (what a repeated :meth:`set`
+        leaves is its last call's). Four writes in all rather than four per tone: a schedule that
+        moves many tones every few blocks (a spatial sweep) spends its time here."""
+        idx = np.asarray(idx)
+        n = idx.size
+        if n == 0:
+            return
+        if idx.ndim != 1 or idx.dtype.kind not in "iu":
+            raise ValueError(f"idx must be a 1-D integer array, got {idx.dtype} of shape {idx.shape}")
+        if idx.min() < 0 or idx.max() >= self.n_tones:
+            bad = int(idx[(idx < 0) | (idx >= self.n_tones)][0])
+            raise ValueError(f"i = {bad} is out of range: allowed 0 <= i <= {self.n_tones - 1}")
+        if np.unique(idx).size != n:
+            raise ValueError("idx lists a tone more than once: set each tone once")
+        f = self._freq(freq, n)
+        a = _vector("amp", amp, n, 0.0, np.inf)
+        r = np.asarray(ramp)
+        if r.shape != (n,) or r.dtype.kind not in "iu" or r.min() < 1 or r.max() > _k.MAX_RAMP:
+            raise ValueError(f"ramp must be {n} integers in 1 ... {_k.MAX_RAMP} samples, got {r!r}")
+        self._write(_k.P_FREQ, idx, f)
+        self._write(_k.P_AMP, idx, a)
+        self._write(_k.P_RAMP, idx, r.astype(np.float64))
+        self._write(_k.P_FLAG, idx, 1.0)
+
     def set_all(self, freq=None, amp=None, ramp=None):
         """Vectorized :meth:`set`: ``freq``, ``amp`` scalars or shape (n_tones,); ``None`` keeps."""
         if freq is not None:
