@@ -198,6 +198,10 @@ class Stimulus:
             self.pulses = PulseTrain(self.n_channels, self.fs, 0.0, 0.5, 0.0, 0.0)
             for ch, (kb, f, duty, high, low) in pulses.items():
                 self._pulse_schedule.setdefault(kb, []).append((ch, f, duty, high, low))
+        # the played signals' changes, for the block function to apply (Rig); until it takes
+        # them, apply() writes them through the bank
+        self.played = PlayedSchedule(self.bank, self._sig_arrays) if self._sig_arrays and self.render is None else None
+        self.played_in_block = False
 
     def _add_voices(self, scene, offsets, tones, chans, freqs, phases) -> None:
         """``stimulus.play``: one bank tone per voice (:mod:`rtctl.voices`), with its schedule."""
@@ -240,7 +244,7 @@ class Stimulus:
             if self.start_hook is not None and self.start_hook(i):
                 continue
             self.bank.set(i, amp=amp, ramp=ramp)
-        sig = self._sig_arrays.get(k)
+        sig = None if self.played_in_block else self._sig_arrays.get(k)
         if sig is not None:
             self.bank.set_many(*sig)
         if self.target_hook is not None:  # the rig sets it whenever there are closed-loop voices
@@ -256,8 +260,8 @@ class Stimulus:
         rendered stimulus)."""
         if self.render is not None:
             return None
-        return (set(self._schedule) | set(self._sig_schedule) | set(self._target_schedule)
-                | set(self._pulse_schedule))
+        played = set() if self.played_in_block else set(self._sig_schedule)
+        return set(self._schedule) | played | set(self._target_schedule) | set(self._pulse_schedule)
 
     def position(self) -> tuple:
         """Where the stimulus is between blocks, outside its arrays: the rendered stimulus' frame
@@ -277,6 +281,34 @@ class Stimulus:
             self.pulses.reset()
         if self.render is not None:
             self.render.reset()
+        if self.played is not None:
+            self.played.reset()
+
+
+class PlayedSchedule:
+    """The played signals' changes of the oscillator bank (open loop), known before the run, as
+    the arrays :func:`rtctl.dsp._kernels.osc_schedule` reads: a stage of the block function
+    applies them at the start of their blocks, so a sweep that moves tones every few blocks needs
+    no Python between those blocks. Checked here, as :meth:`OscillatorBank.set_many` checks."""
+
+    def __init__(self, bank, per_block: dict):
+        ks = sorted(per_block)
+        checked = [bank.check_many(*per_block[k]) for k in ks]
+        self.blocks = np.array(ks, dtype=np.int64)
+        self.first = np.zeros(len(ks) + 1, dtype=np.int64)
+        np.cumsum([c[0].size for c in checked], out=self.first[1:])
+        self.tone, self.freq, self.amp, self.ramp = (np.ascontiguousarray(np.concatenate([c[f] for c in checked]))
+                                                     for f in range(4))
+        for a in (self.blocks, self.first, self.tone, self.freq, self.amp, self.ramp):
+            a.flags.writeable = False  # constants of the run (a checkpoint saves only pos)
+        self.pos = np.zeros(2, dtype=np.int64)  # this block's number, the next entry
+
+    @property
+    def args(self) -> tuple:
+        return self.pos, self.blocks, self.first, self.tone, self.freq, self.amp, self.ramp
+
+    def reset(self) -> None:
+        self.pos[:] = 0
 
 
 class RenderStage:

@@ -115,3 +115,32 @@ def test_a_played_sweep_leaves_the_bank_as_one_set_per_schedule_entry_would():
             twin.set(i, freq=f, amp=amp, ramp=r)
         np.testing.assert_array_equal(st.bank.pending, twin.pending)
     assert len(st._sig_schedule) > 100 and repeated > 0  # some blocks set a tone twice
+
+
+def test_the_block_functions_played_schedule_writes_what_one_set_per_entry_writes():
+    # the rig hands the played signals' schedule to a stage of the block function
+    # (osc_schedule): block by block from block 0, it must leave the bank's pending parameters
+    # as OscillatorBank.set of every entry in order does
+    from rtctl.dsp._kernels import osc_schedule
+
+    s = scene.load("array-bimorph-5x5")
+    st = Stimulus(s, {"array": 0}, 25, 48000.0, 32)
+    twin = copy.deepcopy(st.bank)
+    pending = st.bank.pending
+    last = max(st._sig_schedule)
+    for k in range(last + 3):
+        assert osc_schedule(*st.played.args, pending) == 0
+        for i, f, amp, r in st._sig_schedule.get(k, ()):
+            twin.set(i, freq=f, amp=amp, ramp=r)
+        np.testing.assert_array_equal(pending, twin.pending)
+    assert list(st.played.pos) == [last + 3, len(st._sig_schedule)]
+    st.reset()
+    assert list(st.played.pos) == [0, 0]
+
+
+def test_a_rig_with_played_signals_needs_python_at_none_of_their_blocks():
+    from rtctl.engine.rig import build
+
+    rig = build(scene.load("array-bimorph-5x5"))
+    assert rig.stimulus.played_in_block and rig.next_busy(0) > 1 << 40
+    assert [s.name for s in rig.stages][:2] == ["played signals", "params"]

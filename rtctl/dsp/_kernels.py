@@ -328,6 +328,30 @@ def _osc_ramp_add(st, chan, out, j0, m):
 
 
 @kernel
+def osc_schedule(pos, blocks, first, tone, freq, amp, ramp, pending):
+    """A bank's known schedule of changes, written into ``pending`` at the start of each block
+    (as :meth:`OscillatorBank.set_many` writes them), inside the block function.
+
+    ``pos = (this block's number, next schedule entry)``, advanced here; block ``blocks[j]``
+    sets tones ``tone[first[j]:first[j + 1]]`` (each once) to ``freq``, ``amp`` over ``ramp``
+    samples. Returns 0 (a status)."""
+    k = pos[0]
+    j = pos[1]
+    while j < blocks.shape[0] and blocks[j] <= k:
+        if blocks[j] == k:
+            for e in range(first[j], first[j + 1]):
+                i = tone[e]
+                pending[P_FREQ, i] = freq[e]
+                pending[P_AMP, i] = amp[e]
+                pending[P_RAMP, i] = ramp[e]
+                pending[P_FLAG, i] = 1.0
+        j += 1
+    pos[0] = k + 1
+    pos[1] = j
+    return 0
+
+
+@kernel
 def osc_bank_process(state, pending, chan, out):
     """Add ``n = out.shape[1]`` samples of every tone into ``out[chan[i]]`` (see OscillatorBank).
 

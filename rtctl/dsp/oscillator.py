@@ -268,12 +268,23 @@ class OscillatorBank(Routed):
     def set_many(self, idx, freq, amp, ramp):
         """:meth:`set` of several tones at once: tone ``idx[j]`` ramps to ``freq[j]`` (Hz) and
         ``amp[j]`` over ``ramp[j]`` samples. Each tone at most once (what a repeated :meth:`set`
-        leaves is its last call's). Four writes in all rather than four per tone: a schedule that
-        moves many tones every few blocks (a spatial sweep) spends its time here."""
+        leaves is its last call's). Four writes in all rather than four per tone."""
+        checked = self.check_many(idx, freq, amp, ramp)
+        if checked is None:
+            return
+        idx, f, a, r = checked
+        self._write(_k.P_FREQ, idx, f)
+        self._write(_k.P_AMP, idx, a)
+        self._write(_k.P_RAMP, idx, r)
+        self._write(_k.P_FLAG, idx, 1.0)
+
+    def check_many(self, idx, freq, amp, ramp):
+        """:meth:`set_many`'s arguments checked (a ValueError naming the first bad one) and made
+        ``(int64, float64, float64, float64)`` arrays; None when ``idx`` is empty."""
         idx = np.asarray(idx)
         n = idx.size
         if n == 0:
-            return
+            return None
         if idx.ndim != 1 or idx.dtype.kind not in "iu":
             raise ValueError(f"idx must be a 1-D integer array, got {idx.dtype} of shape {idx.shape}")
         if idx.min() < 0 or idx.max() >= self.n_tones:
@@ -286,10 +297,7 @@ class OscillatorBank(Routed):
         r = np.asarray(ramp)
         if r.shape != (n,) or r.dtype.kind not in "iu" or r.min() < 1 or r.max() > _k.MAX_RAMP:
             raise ValueError(f"ramp must be {n} integers in 1 ... {_k.MAX_RAMP} samples, got {r!r}")
-        self._write(_k.P_FREQ, idx, f)
-        self._write(_k.P_AMP, idx, a)
-        self._write(_k.P_RAMP, idx, r.astype(np.float64))
-        self._write(_k.P_FLAG, idx, 1.0)
+        return idx.astype(np.int64), f, a, r.astype(np.float64)
 
     def set_all(self, freq=None, amp=None, ramp=None):
         """Vectorized :meth:`set`: ``freq``, ``amp`` scalars or shape (n_tones,); ``None`` keeps."""

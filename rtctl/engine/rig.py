@@ -331,8 +331,17 @@ class Rig:
         self._device_in_block = calls is not None
         before, after = calls or ([], [])
         wrap = [Stage(name, k, dict(enumerate(args)), status) for name, k, args, status in before]
-        stages = [Stage("params", drain, dict(zip(("ring", "heads", "targets"), self.queue.args)),
-                        reset=self.queue.reset), *wrap,
+        played = []
+        if self.stimulus.played is not None:
+            from ..dsp._kernels import osc_schedule
+
+            sched = self.stimulus.played
+            played = [Stage("played signals", osc_schedule,
+                            dict(zip(("pos", "blocks", "first", "tone", "freq", "amp", "ramp"), sched.args),
+                                 pending=self.bank.pending), reset=sched.reset)]
+            self.stimulus.played_in_block = True
+        stages = [*played, Stage("params", drain, dict(zip(("ring", "heads", "targets"), self.queue.args)),
+                                 reset=self.queue.reset), *wrap,
                   Stage("clear", clear, {"out": self.out}, status=None)]
         if self.bank is not None:
             from ..dsp import osc_bank_process
