@@ -17,7 +17,7 @@ while the true 40, 120 and 250 Hz tips are 78 to 95 % short): only the device's 
 Xruns: a run with any (PortAudio's flags, which include every server xrun while the stream runs)
 is not judged; it is run once more, and when that one has xruns too, twice more at block 256 (a
 5.3 ms period instead of 1.3 ms: a VM whose vCPUs wake a few ms late now and then loses far fewer
-periods; on the 2-core VM 0 of 2 runs at 64 were xrun-free, 4 of 5 at 256). When those have xruns
+periods; figures in docs/backends/audio.md). When those have xruns
 too the test skips, naming them and what jackd said caused them (docs/backends/audio.md).
 
 The scene's ``[[events]]`` are not played by the emulator (the finger keeps the scene's initial
