@@ -95,8 +95,8 @@ def _check_tones(scene, offsets: dict) -> None:
 
 
 def _last_per_tone(items) -> tuple:
-    """A block's ``[(tone, freq, amp, ramp)]`` as :meth:`OscillatorBank.set_many`'s arrays, each
-    tone once with its last entry's values (what setting them one by one would leave)."""
+    """A block's ``[(tone, freq, amp, ramp)]`` as arrays, each tone once with its last entry's
+    values (what setting them one by one would leave)."""
     last = {}
     for i, f, amp, r in items:
         last[i] = (f, amp, r)
@@ -171,7 +171,6 @@ class Stimulus:
         self.voices: list = []  # (Voice, closed, receptor) per stimulus.play partial and channel
         if scene.stimulus.play:
             self._add_voices(scene, offsets, tones, chans, freqs, phases)
-        self._sig_arrays = {k: _last_per_tone(items) for k, items in self._sig_schedule.items()}
         self.tones = tones
         self.targets_um = np.full(self.n_channels, np.nan)
         for tone in tones:
@@ -198,9 +197,11 @@ class Stimulus:
             self.pulses = PulseTrain(self.n_channels, self.fs, 0.0, 0.5, 0.0, 0.0)
             for ch, (kb, f, duty, high, low) in pulses.items():
                 self._pulse_schedule.setdefault(kb, []).append((ch, f, duty, high, low))
-        # the played signals' changes, for the block function to apply (Rig); until it takes
-        # them, apply() writes them through the bank
-        self.played = PlayedSchedule(self.bank, self._sig_arrays) if self._sig_arrays and self.render is None else None
+        # the played signals' changes (stimulus.play needs kind = "tones": no render), applied by
+        # a stage of the rig's block function; apply() runs the same kernel when no rig does
+        self.played = None
+        if self._sig_schedule:
+            self.played = PlayedSchedule(self.bank, {k: _last_per_tone(v) for k, v in self._sig_schedule.items()})
         self.played_in_block = False
 
     def _add_voices(self, scene, offsets, tones, chans, freqs, phases) -> None:
@@ -244,9 +245,8 @@ class Stimulus:
             if self.start_hook is not None and self.start_hook(i):
                 continue
             self.bank.set(i, amp=amp, ramp=ramp)
-        sig = None if self.played_in_block else self._sig_arrays.get(k)
-        if sig is not None:
-            self.bank.set_many(*sig)
+        if self.played is not None and not self.played_in_block:
+            self.played.apply(k, self.bank.pending)
         if self.target_hook is not None:  # the rig sets it whenever there are closed-loop voices
             for i, target_m in self._target_schedule.get(k, ()):
                 self.target_hook(i, target_m)
@@ -289,7 +289,7 @@ class PlayedSchedule:
     """The played signals' changes of the oscillator bank (open loop), known before the run, as
     the arrays :func:`rtctl.dsp._kernels.osc_schedule` reads: a stage of the block function
     applies them at the start of their blocks, so a sweep that moves tones every few blocks needs
-    no Python between those blocks. Checked here, as :meth:`OscillatorBank.set_many` checks."""
+    no Python between those blocks. Checked here (:meth:`OscillatorBank.check_many`)."""
 
     def __init__(self, bank, per_block: dict):
         ks = sorted(per_block)
@@ -306,6 +306,14 @@ class PlayedSchedule:
     @property
     def args(self) -> tuple:
         return self.pos, self.blocks, self.first, self.tone, self.freq, self.amp, self.ramp
+
+    def apply(self, k: int, pending) -> None:
+        """Block ``k``'s changes into ``pending`` from Python (a stimulus no rig runs: the
+        bank's own, unrouted ``pending``), with the block function's kernel."""
+        from .dsp._kernels import osc_schedule
+
+        self.pos[:] = k, np.searchsorted(self.blocks, k)
+        osc_schedule(*self.args, pending)
 
     def reset(self) -> None:
         self.pos[:] = 0

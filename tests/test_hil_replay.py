@@ -26,7 +26,7 @@ if JACKD is None:
                 allow_module_level=True)
 require("jack", "sounddevice")
 
-from test_hil_control import AUDIO, BLOCKS, on_audio, sets, timing  # noqa: E402
+from test_hil_control import AUDIO, on_audio, sets, timing, without_xruns  # noqa: E402
 
 SCENE = "line-bimorph-5"
 
@@ -35,24 +35,13 @@ def audio_run(tmp_path, name, block, device):
     out = tmp_path / name
     r = on_audio(tmp_path, name, ["run", SCENE, "--json", "--no-plot", "--out", str(out),
                                   *sets(timing(block) + AUDIO)], block, device)
-    return out, json.loads(r["proc"].stdout)["io"]["xruns"], r["causes"]
+    return dict(r, out=out, xruns=json.loads(r["proc"].stdout)["io"]["xruns"])
 
 
 def audio_run_replayed(tmp_path, name, device=()):
-    """An audio run without xruns (two tries at each of test_hil_control's blocks in turn; when
-    every one has xruns the test skips: a glitch the plant never saw is not the model's fault),
-    replayed on the plant."""
-    seen = []
-    for block in BLOCKS:
-        for i in (1, 2):
-            out, xruns, causes = audio_run(tmp_path, f"{name}-{block}-{i}", block, device)
-            if not xruns:
-                break
-            seen.append(f"block {block}: {xruns} (jackd: {causes})")
-        if not xruns:
-            break
-    else:
-        pytest.skip(f"xruns in every try ({'; '.join(seen)}): not judged")
+    """An audio run without xruns (test_hil_control's tries; when every one has xruns the test
+    skips: a glitch the plant never saw is not the model's fault), replayed on the plant."""
+    out = without_xruns(lambda i, block: audio_run(tmp_path, f"{name}-{block}-{i}", block, device))["out"]
     # the emulator connects a few blocks into the run: its plant starts later than the model's
     p = subprocess.run(CLI + ["replay", str(out), "--mode", "plant", "--skip", "0.1", "--json"],
                        capture_output=True, text=True, timeout=600)

@@ -330,7 +330,7 @@ def _osc_ramp_add(st, chan, out, j0, m):
 @kernel
 def osc_schedule(pos, blocks, first, tone, freq, amp, ramp, pending):
     """A bank's known schedule of changes, written into ``pending`` at the start of each block
-    (as :meth:`OscillatorBank.set_many` writes them), inside the block function.
+    (what :meth:`OscillatorBank.set` of each change would write), inside the block function.
 
     ``pos = (this block's number, next schedule entry)``, advanced here; block ``blocks[j]``
     sets tones ``tone[first[j]:first[j + 1]]`` (each once) to ``freq``, ``amp`` over ``ramp``

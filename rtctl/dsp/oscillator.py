@@ -265,22 +265,12 @@ class OscillatorBank(Routed):
         self._write(_k.P_RAMP, i, self._ramp(ramp))
         self._write(_k.P_FLAG, i, 1.0)
 
-    def set_many(self, idx, freq, amp, ramp):
-        """:meth:`set` of several tones at once: tone ``idx[j]`` ramps to ``freq[j]`` (Hz) and
-        ``amp[j]`` over ``ramp[j]`` samples. Each tone at most once (what a repeated :meth:`set`
-        leaves is its last call's). Four writes in all rather than four per tone."""
-        checked = self.check_many(idx, freq, amp, ramp)
-        if checked is None:
-            return
-        idx, f, a, r = checked
-        self._write(_k.P_FREQ, idx, f)
-        self._write(_k.P_AMP, idx, a)
-        self._write(_k.P_RAMP, idx, r)
-        self._write(_k.P_FLAG, idx, 1.0)
-
     def check_many(self, idx, freq, amp, ramp):
-        """:meth:`set_many`'s arguments checked (a ValueError naming the first bad one) and made
-        ``(int64, float64, float64, float64)`` arrays; None when ``idx`` is empty."""
+        """Changes of several tones, each once, checked as :meth:`set` checks one (a ValueError
+        naming the first bad value): tone ``idx[j]`` to ``freq[j]`` (Hz) and ``amp[j]`` over
+        ``ramp[j]`` samples. Returns them as ``(int64, float64, float64, float64)`` arrays, or
+        None when ``idx`` is empty. For a schedule written into ``pending`` by a kernel
+        (:func:`rtctl.dsp._kernels.osc_schedule`)."""
         idx = np.asarray(idx)
         n = idx.size
         if n == 0:
