@@ -295,7 +295,7 @@ class Models:
         0 for an unused slot): the transfer-matrix beam under the finger, the front end of the
         group's amplifier and sense chain; the rebuilt tip wave goes into ``wave``; ``window``,
         ``hop`` and ``lstsq`` as for :class:`~rtctl.selfsense.rt.Observer` (one window for all
-        channels or one per channel; default whole periods of every tone, hop one block). An
+        channels or one per channel; default :func:`~rtctl.selfsense.rt.block_window`). An
         ill-conditioned tone is refused (ModelError)."""
         from .selfsense.frontend import FrontEnd
         from .selfsense.rt import Observer

@@ -258,3 +258,33 @@ def test_tone_window_is_the_first_candidate_of_whole_periods():
     for row in rows:
         for fs, hop, sec in ((48000.0, 32, 1.0), (48000.0, 8, 1.0), (44100.0, 64, 2.0), (48000.0, 32, 0.01)):
             assert tone_window(row, fs, hop, sec) == _tone_window_one_by_one(row, fs, hop, sec), (row, hop)
+
+
+def test_a_grid_window_that_leaks_is_never_the_default():
+    """At block 1024 no multiple of the block within 1 s holds whole periods of 2 Hz (24 000
+    samples is 23.4 blocks): the observer's default window and the closed loop's short windows
+    are then whole periods with a finer hop, and a 2 Hz drive reads its amplitude exactly (the
+    grid's 47 104 samples, 1.96 periods, read it 0.3 % off here; the closed loop's 2 Hz tip
+    estimate, through the observer's matrices, read 11 % high)."""
+    from rtctl.selfsense.rt import block_window, holds_whole_periods, short_windows
+
+    block, f, amp = 1024, 2.0, 3.0
+    leaky = tone_window([f], FS, block)
+    assert not holds_whole_periods([f], leaky, FS)  # the case this guards against exists
+    assert block_window([f], FS, block) == (24000, 64)
+    w, lsq, hop = short_windows([[2.0], [10.0], [40.0]], FS, block)
+    assert w.tolist() == [24000, 4800, 1200] and not lsq.any() and hop == 16
+    assert block_window([f], FS, 32) == (24000, 32)  # on the grid when it holds whole periods
+
+    obs = Observer(TMMBeam.from_fe(fe_model()), [[f]], FS, block)
+    assert (obs.window, obs.hop) == (24000, 64)
+    n = np.arange(3 * obs.window + block)
+    drive = amp * np.cos(2 * np.pi * f * n / FS + 0.4)
+    sensed = np.zeros((obs.n_seg, block))
+    for b in range(len(n) // block):
+        obs.process(np.ascontiguousarray(drive[None, b * block:(b + 1) * block]), sensed)
+    assert obs.lock_u.amplitude[0, 0] == pytest.approx(amp, rel=1e-9)
+    grid = Observer(TMMBeam.from_fe(fe_model()), [[f]], FS, block, window=leaky)
+    for b in range(len(n) // block):
+        grid.process(np.ascontiguousarray(drive[None, b * block:(b + 1) * block]), sensed)
+    assert abs(grid.lock_u.amplitude[0, 0] / amp - 1.0) > 1e-3  # what the default avoids

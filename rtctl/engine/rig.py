@@ -198,7 +198,7 @@ class Rig:
                 width = max(1, max(len(p) for p in per))
                 freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
                 window, lstsq, hop = (short_windows(freqs, self.fs, self.block) if self.closed
-                                      else (None, False, self.block))
+                                      else (None, False, None))
                 obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[ch0:c1],
                                            window=window, hop=hop, lstsq=lstsq)
                 st = ObserverStage(obs, self.latency, self.out[ch0:c1], self.sensed[row0:row0 + n * n_seg],

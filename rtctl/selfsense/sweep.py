@@ -153,7 +153,7 @@ def run_case(fe, load, freqs, volts, fs=48000.0, block=32, snr_db=60.0, mismatch
         img_load = MaxwellLoad(load.mass, load.k0 * s, tuple((k * s, t) for k, t in load.branches))
     obs = Observer(model, freqs[None, :], fs, block, front, image_load=img_load)
     W = obs.window
-    truth_lock = LockIn(3, np.repeat(freqs[None, :], 3, axis=0), fs, W, hop=block)
+    truth_lock = LockIn(3, np.repeat(freqs[None, :], 3, axis=0), fs, W, hop=obs.hop)
     n_seg = plant.n_seg
     drive = np.zeros((1, block))
     sensed = np.zeros((n_seg, block))
