@@ -269,6 +269,38 @@ def test_bad_calibration_files_are_refused_in_one_line(measured, capsys, tmp_pat
     assert "no bimorph group" in refused(capsys, ["calibrate", "solenoid-3x3"])
 
 
+def test_a_calibration_of_another_model_of_the_actuator_is_refused(measured, capsys, tmp_path):
+    """The factors multiply the scene's beam, support, amplifier, sense filter and materials: the
+    file records them, and a run whose actuator differs in any of them is refused in one line
+    naming what changed. What a calibration does not depend on (the device's secret departures,
+    the block, the finger, the limits) may differ."""
+    s, _, doc, path = measured
+    rec = doc["groups"]["lateral"]["model"]
+    assert rec["beam"]["length"] == s.actuator[0].beam.length and rec["support"]["k"] == "inf"
+    assert rec["materials"]["PZT-5A"]["E"] == pytest.approx(1.0 / 16.4e-12)  # PZT-5A's s11E
+    assert K.read(path, s).factors == doc["groups"]["lateral"]["factors"]
+    same = scene.load(SCENE, ["io.mismatch.E=1.3", "timing.block=64", "finger.preload=1.96",
+                              "actuator.lateral.max_voltage=100", "actuator.lateral.sense.noise=1e-5"])
+    assert K.read(path, same).factors == doc["groups"]["lateral"]["factors"]
+    run_with = ["run", SCENE, "--duration", "0.01", "--no-plot", "--out", str(tmp_path / "out"), "--set",
+                f"control.calibration={path}"]
+    for change, named in (("actuator.lateral.beam.length=0.025", "beam.length 0.015 -> 0.025"),
+                          ("actuator.lateral.beam.layers.1.thickness=0.0002", "beam.layers.1.thickness"),
+                          ("actuator.lateral.beam.segments=[0.3, 0.7]", "beam.segments"),
+                          ("actuator.lateral.beam.mass=1.2e-4", "beam.mass 0.0 -> 0.00012"),
+                          ("actuator.lateral.support.k=1e6", "support.k 'inf' -> 1000000.0"),
+                          ("actuator.lateral.sense.shunt=50", "sense.shunt"),
+                          ("materials.PZT-5A={E = 6.0e10, d31 = -1.71e-10, eps33T = 1700, rho = 7750}",
+                           "materials.PZT-5A.E")):
+        msg = refused(capsys, run_with + ["--set", change])
+        assert "calibrated on another model of the actuator" in msg and named in msg, (change, msg)
+    # a file written by hand without the record is taken as it is
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps({**doc, "groups": {"lateral": {k: v for k, v in doc["groups"]["lateral"].items()
+                                                              if k != "model"}}}))
+    assert K.read(bare, scene.load(SCENE, ["actuator.lateral.beam.length=0.025"])).factors
+
+
 def test_a_relative_path_is_found_beside_the_scene_file(measured, tmp_path):
     s = tmp_path / "s.toml"
     s.write_text(scene.resolve(SCENE).read_text().replace('mode = "open"', 'mode = "open"\ncalibration = "cal.json"'))

@@ -10,13 +10,14 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from rtctl import scene
-from rtctl.engine.calibrate import FORMAT, Calibration, read
+from rtctl.engine.calibrate import FORMAT, Calibration, model_of, read
 from rtctl.errors import SceneError
 from rtctl.models import FACTORS
 
 SCENE = scene.load("line-bimorph-5")
 GOOD = {"format": FORMAT, "scene": SCENE.scene.name,
-        "groups": {"lateral": {"factors": {k: 1.0 for k in FACTORS}, "uncertainty_pct": 1.0}}}
+        "groups": {"lateral": {"factors": {k: 1.0 for k in FACTORS}, "uncertainty_pct": 1.0,
+                               "model": model_of(SCENE, SCENE.actuator[0])}}}
 
 hostile = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=10)
@@ -25,7 +26,10 @@ hostile = st.recursive(
     max_leaves=8,
 )
 PLACES = [("format",), ("scene",), ("groups",), ("groups", "lateral"), ("groups", "lateral", "factors"),
-          ("groups", "lateral", "uncertainty_pct"), *[("groups", "lateral", "factors", k) for k in FACTORS]]
+          ("groups", "lateral", "uncertainty_pct"), *[("groups", "lateral", "factors", k) for k in FACTORS],
+          ("groups", "lateral", "model"), ("groups", "lateral", "model", "beam"),
+          ("groups", "lateral", "model", "beam", "length"), ("groups", "lateral", "model", "beam", "layers"),
+          ("groups", "lateral", "model", "support", "k"), ("groups", "lateral", "model", "materials", "PZT-5A", "E")]
 
 
 @fuzz(200)

@@ -31,7 +31,7 @@ from pathlib import Path
 from ..errors import ModelError, RtctlError, SceneError
 
 __all__ = ["Calibration", "FORMAT", "auto", "calibrate", "default_path", "document", "excitation", "lifted",
-           "measure", "plan", "read", "scene_calibration", "summary_of", "write"]
+           "measure", "model_changes", "model_of", "plan", "read", "scene_calibration", "summary_of", "write"]
 
 #: The calibration file's format tag (a reader refuses any other).
 FORMAT = "rtctl-calibration-1"
@@ -315,6 +315,7 @@ def document(scene, m: Measurement) -> dict:
         mean = cur.mean(axis=0)
         groups[p.name] = {
             "channels": p.n,
+            "model": model_of(scene, g),
             "factors": factors,
             "fitted": dict(r.factors),
             "sd": r.sd,
@@ -349,6 +350,63 @@ def document(scene, m: Measurement) -> dict:
         "groups": groups,
         "warnings": warnings,
     }
+
+
+#: The sense chain's keys the model (and so the fit) depends on; its noise, bits and full scale
+#: only set how well the currents are read.
+_SENSE_MODEL = ("shunt", "aa_cutoff", "aa_order")
+
+
+def model_of(scene, group) -> dict:
+    """What a group's fitted factors multiply: the scene's beam (geometry, layers, damping,
+    mass and tolerances), support, amplifier, the sense chain's filter, and the properties of the
+    materials its layers use. A calibration applies only to the model it was fitted on: recorded
+    with the factors, checked when a run reads them (:func:`read`). Non-finite values (a rigid
+    support's ``k = inf``) as strings, so the file stays JSON."""
+    import dataclasses
+
+    from ..models import materials
+
+    mats = materials(scene)
+    used = sorted({layer.material for layer in group.beam.layers})
+    model = {"beam": group.beam.to_dict(), "support": group.support.to_dict(),
+             "amplifier": group.amplifier.to_dict(), "sense": {k: group.sense[k] for k in _SENSE_MODEL},
+             "materials": {n: dataclasses.asdict(mats[n]) for n in used}}
+    return _finite_json(model)
+
+
+def _finite_json(v):
+    if isinstance(v, dict):
+        return {str(k): _finite_json(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite_json(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return repr(v)
+    return v
+
+
+def model_changes(recorded, now, at: str = "") -> list[str]:
+    """Where ``recorded`` (a calibration's ``model``, as read from its file: any JSON) differs from
+    ``now`` (:func:`model_of`), as ``"beam.length 0.015 -> 0.025"``; a few at most."""
+    if isinstance(now, dict):
+        if not isinstance(recorded, dict):
+            return [f"{at or 'model'}: {_short(recorded, 40)}, not a table"]
+        out = []
+        for k in sorted(set(now) | set(recorded)):
+            where = f"{at}.{k}" if at else k
+            if k not in recorded or k not in now:
+                out.append(f"{where} {'not recorded' if k not in recorded else 'not in the scene'}")
+            else:
+                out += model_changes(recorded[k], now[k], where)
+        return out
+    if isinstance(now, list):
+        if not isinstance(recorded, list) or len(recorded) != len(now):
+            return [f"{at} {_short(recorded, 40)} -> {_short(now, 40)}"]
+        return [x for i, (a, b) in enumerate(zip(recorded, now)) for x in model_changes(a, b, f"{at}.{i}")]
+    same = (recorded == now and type(recorded) is type(now)) or (
+        isinstance(recorded, (int, float)) and isinstance(now, (int, float)) and not isinstance(recorded, bool)
+        and not isinstance(now, bool) and recorded == now)
+    return [] if same else [f"{at} {_short(recorded, 40)} -> {_short(now, 40)}"]
 
 
 _HINT = ("; was a finger on the display during the excitation, a segment unconnected, or the scene's "
@@ -451,6 +509,13 @@ def read(path, scene) -> Calibration:
         if bad or not math.isfinite(unc):
             raise SceneError(f"{where}: group {gname!r}: factors {_short(bad)} unknown or not finite and > 0 "
                              f"(allowed: {', '.join(FACTORS)})")
+        if "model" in entry:  # files written by hand may leave it out; rtctl calibrate writes it
+            changes = model_changes(entry["model"], model_of(scene, scene.group(gname)))
+            if changes:
+                more = f" and {len(changes) - 3} more" if len(changes) > 3 else ""
+                raise SceneError(f"{where}: group {gname!r} was calibrated on another model of the actuator "
+                                 f"({'; '.join(changes[:3])}{more}): its factors do not apply to this one; "
+                                 "calibrate again (rtctl calibrate)")
         out[gname] = {"factors": factors, "uncertainty_pct": unc}
     missing = [g for g in bimorph if g not in out]
     if missing:
