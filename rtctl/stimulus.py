@@ -112,7 +112,9 @@ class Stimulus:
     ----------
     tones : list of Tone
     targets_um : ndarray, shape (n_channels,)
-        Perception target per channel, um (NaN where no tone has one).
+        Target per channel, um: the sum of its tones' (NaN where a tone has none).
+    tone_targets_um : ndarray, shape (n_tones,)
+        Target per tone, um (events change it; :meth:`sum_targets` carries it to the channel's).
     bank : OscillatorBank or None
         Sine tones and beat pairs (or the beat method's rendered sines).
     pulses : PulseTrain or None
@@ -172,9 +174,13 @@ class Stimulus:
         if scene.stimulus.play:
             self._add_voices(scene, offsets, tones, chans, freqs, phases)
         self.tones = tones
+        # per tone, and per channel the sum of its tones' (a channel's amplitude is the sum of its
+        # tones' amplitudes, as a beat pair's envelope peak is its two sines'); NaN where a tone has none
+        self.tone_targets_um = np.array([tone.target_m * 1e6 for tone in tones], dtype=float)
+        self.tone_targets_um0 = self.tone_targets_um.copy()
         self.targets_um = np.full(self.n_channels, np.nan)
-        for tone in tones:
-            self.targets_um[tone.channel] = tone.target_m * 1e6
+        for ch in {tone.channel for tone in tones}:
+            self.sum_targets(ch)
         for i in self.closed_voices:  # until its envelope starts
             self.targets_um[chans[i]] = 0.0
         self.targets_um0 = self.targets_um.copy()  # as the scene starts (events change targets_um)
@@ -273,8 +279,17 @@ class Stimulus:
         if self.render is not None:
             self.render.seek(position)
 
+    def sum_targets(self, ch: int) -> None:
+        """``targets_um[ch]``: the sum of channel ``ch``'s tones' targets (in place; between blocks)."""
+        total = 0.0
+        for k, tone in enumerate(self.tones):
+            if tone.channel == ch:
+                total += self.tone_targets_um[k]
+        self.targets_um[ch] = total
+
     def reset(self) -> None:
         """Back to the start: banks at rest (no block may run meanwhile), render at its first frame."""
+        self.tone_targets_um[...] = self.tone_targets_um0
         if self.bank is not None:
             self.bank.reset()
         if self.pulses is not None:

@@ -125,3 +125,34 @@ def test_a_tone_target_in_um_overrides_the_receptor_margin():
     rig = build(scene.load("line-bimorph-5", ["control.mode=closed", "stimulus.tones.4.target_um=0.3"]))
     assert rig.targets_um[4] == pytest.approx(0.3)
     assert np.isfinite(rig.targets_um).all()
+
+
+def test_the_report_judges_against_the_target_in_force(tmp_path):
+    """A target stepped by an event: the row, and the event's segment, are judged against the new
+    target, the start's segment against the old one; a channel of two tones against the sum of
+    their targets (its amplitude is the sum of theirs, as a beat pair's is its two sines'), and
+    the trace's target line says the same. (The report judged the 5 um step against the scene's
+    12 um, -58 %; the two tones' 6 um sum against the first tone's 5 um, +19 %.)"""
+    from rtctl.trace import TraceReader
+
+    tones = ("[{channel = 0, freq = 100, voltage = 1.0, target_um = 5.0}, "
+             "{channel = 0, freq = 300, voltage = 1.0, target_um = 1.0}, "
+             "{channel = 1, freq = 120, voltage = 1.0, target_um = 6.0}]")
+    s = scene.load("line-bimorph-5-closed", ["actuator.lateral.grid=[1, 2]", f"stimulus.tones={tones}",
+                                             'events=[{at = 0.3, set = {"stimulus.tones.2.target_um" = 3.0}}]',
+                                             "timing.duration=0.6"])
+    res = run(s, out_dir=tmp_path, plot=False)
+    two, stepped = res.summary["channels"]
+    assert two["target_um"] == pytest.approx(6.0, rel=1e-12) and abs(two["error_pct"]) < 2.0, two
+    assert two["error_pct"] == pytest.approx(100 * (two["true_um"] / 6.0 - 1), rel=1e-9)
+    assert stepped["target_um"] == pytest.approx(3.0, rel=1e-12) and abs(stepped["error_pct"]) < 2.0, stepped
+    (ev,) = stepped["events"]
+    assert ev["target_um"] == pytest.approx(3.0, rel=1e-12)
+    assert ev["error_pct"] == pytest.approx(stepped["error_pct"], rel=1e-12)
+    st = stepped["start"]
+    assert st["target_um"] == pytest.approx(6.0, rel=1e-12) and abs(st["error_pct"]) < 2.0
+    assert st["error_pct"] == pytest.approx(100 * (st["true_um"] / 6.0 - 1), rel=1e-9)
+    line = TraceReader(tmp_path / "trace").signal("target_um")
+    k = int(round(0.3 * s.timing.fs)) // s.timing.block
+    assert np.all(line[0] == 6.0)
+    assert np.all(line[1, :k] == 6.0) and np.all(line[1, k:] == 3.0)

@@ -100,7 +100,10 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
         freqs = [f for tn in tones for f in tn.freqs]
         main = tones[0] if tones else None
         stops = rig.scene.group(rig.channel_groups[ch]).type in END_STOP_TYPES
-        target_m = main.target_m if main is not None and not stops else None
+        # per segment (the start, then each event: an event may step a tone's target) the sum of
+        # the channel's tones' targets; the row's is the one in force at the run's end
+        targets = segment_targets(rig, ch) if main is not None and not stops else None
+        target_m = targets[-1] if targets else None
         row = {
             "name": rig.channel_names[ch],
             "group": rig.channel_groups[ch],
@@ -165,7 +168,7 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
                 # settled to and how long that took; the row reports the last amplitude (the
                 # error against the target) and the worst settle over all segments
                 start = min(tn.start for tn in tones)
-                segs = _event_settles(rig, tip, t, freqs, n / fs, start)
+                segs = _event_settles(rig, tip, t, freqs, n / fs, start, targets)
                 row["start"], row["events"] = segs[0], segs[1:]
                 last = segs[-1]["true_um"]
                 if last is not None:
@@ -250,10 +253,28 @@ def _control(rig, rows) -> None:
                 row["reachable_um"] = est
 
 
-def _event_settles(rig, tip, t, freqs, t_end, start) -> list[dict]:
+def segment_targets(rig, ch: int) -> list[float]:
+    """Channel ``ch``'s target (m) from the start and after each of the run's events: the sum of
+    its tones' targets (a channel's amplitude is the sum of its tones', as a beat pair's envelope
+    peak is its two sines'), NaN where a tone has none; an event's ``stimulus.tones.N.target_um``
+    replaces tone N's."""
+    per = {i: tn.target_m for i, tn in enumerate(rig.tones) if tn.channel == ch}
+    out = [math.fsum(per.values())]
+    for ev in rig.events:
+        for key, value in ev.sets.items():
+            if key.startswith("stimulus.tones.") and key.endswith(".target_um"):
+                i = int(key.split(".")[2])
+                if i in per:
+                    per[i] = float(value) * 1e-6
+        out.append(math.fsum(per.values()))
+    return out
+
+
+def _event_settles(rig, tip, t, freqs, t_end, start, targets=None) -> list[dict]:
     """Per segment of the run (from ``start``, then from each event): the true amplitude it
-    settled to (over the last analysis window before the next event or the run's end) and how
-    long after the segment's start that took (5 % band)."""
+    settled to (over the last analysis window before the next event or the run's end), how long
+    after the segment's start that took (5 % band), and with ``targets`` (m per segment,
+    :func:`segment_targets`) the segment's target and the error against it."""
     out = []
     starts = [start] + [ev.block * rig.block / rig.fs for ev in rig.events]
     for i, t0 in enumerate(starts):
@@ -266,8 +287,14 @@ def _event_settles(rig, tip, t, freqs, t_end, start) -> list[dict]:
         final = float(fit_amplitudes(tip[m], t[m], freqs).sum()) if ok else math.nan
         seg = (t >= t0) & (t < t1)
         st = settle_time(tip[seg], t[seg], freqs, t0, final) if math.isfinite(final) else None
-        out.append({"t_s": t0, "true_um": final if math.isfinite(final) else None,
-                    "settle_ms": None if st is None else 1e3 * st})
+        row = {"t_s": t0, "true_um": final if math.isfinite(final) else None,
+               "settle_ms": None if st is None else 1e3 * st}
+        if targets is not None:
+            tgt = targets[i]
+            row["target_um"] = _um(tgt)
+            row["error_pct"] = (100.0 * (final * 1e-6 - tgt) / tgt
+                                if math.isfinite(final) and math.isfinite(tgt) and tgt > 0 else None)
+        out.append(row)
     return out
 
 

@@ -446,7 +446,8 @@ class Rig:
                 continue
             n = int(key.split(".")[2])
             tone, bank = self.tones[n], self.stimulus.bank_index[n]
-            self.targets_um[tone.channel] = value
+            self.stimulus.tone_targets_um[n] = value
+            self.stimulus.sum_targets(tone.channel)
             for b in bank:
                 hit = self.controlled.get(b) if self.controllers else None
                 if hit is not None:
