@@ -106,45 +106,66 @@ class Models:
         Relative factors on the scene's values, keys of :data:`FACTORS` (missing keys: 1): the
         models of a device that differs from the scene by them. Factors of exactly 1 change no
         bit (``x * 1.0 == x``).
+    group_factors : dict, optional
+        ``{group name: factors}``: for those groups' models, factors in place of ``factors``
+        (a calibration fits each bimorph group on its own; a material two groups share may then
+        carry a different factor in each group's beam).
     """
 
-    def __init__(self, scene, factors=None):
+    def __init__(self, scene, factors=None, group_factors=None):
         self.scene = scene
-        self.factors = {k: float(v) for k, v in (factors or {}).items()}
-        unknown = sorted(set(self.factors) - set(FACTORS))
-        bad = [k for k, v in self.factors.items() if not (math.isfinite(v) and v > 0.0)]
+        self.factors = self._checked(factors)
+        self.group_factors = {str(g): self._checked(f) for g, f in (group_factors or {}).items()}
+        self._cache: dict = {}
+
+    @staticmethod
+    def _checked(factors) -> dict:
+        out = {k: float(v) for k, v in (factors or {}).items()}
+        unknown = sorted(set(out) - set(FACTORS))
+        bad = [k for k, v in out.items() if not (math.isfinite(v) and v > 0.0)]
         if unknown or bad:
             raise ModelError(f"Models factors: unknown {unknown} (allowed: {', '.join(FACTORS)}), "
                              f"or not finite and > 0: {bad}")
-        self._cache: dict = {}
+        return out
 
-    def _factor(self, name: str) -> float:
-        return self.factors.get(name, 1.0)
+    def factors_of(self, group=None) -> dict:
+        """The factors ``group``'s models take (the scene-wide ones without a group of its own)."""
+        if group is not None and group.name in self.group_factors:
+            return self.group_factors[group.name]
+        return self.factors
+
+    def _factor(self, name: str, group=None) -> float:
+        return self.factors_of(group).get(name, 1.0)
 
     def _get(self, key, build):
         if key not in self._cache:
             self._cache[key] = build()
         return self._cache[key]
 
-    def materials(self) -> dict:
+    def materials(self, group=None) -> dict:
+        """The scene's bimorph materials under the factors (``group``'s own, where it has them)."""
+        own = group is not None and group.name in self.group_factors
+
         def build():
             from dataclasses import replace
 
-            f, mats = self._factor, materials(self.scene)
-            if not self.factors:  # the built-in objects themselves
+            mats, factors = materials(self.scene), self.factors_of(group if own else None)
+            if not factors:  # the built-in objects themselves
                 return mats
-            return {name: replace(m, E=m.E * f("E"), d31=m.d31 * f("d31"), eps33T=m.eps33T * f("eps33T"),
-                                  rho=m.rho * f("rho"))
+            f = factors.get
+            return {name: replace(m, E=m.E * f("E", 1.0), d31=m.d31 * f("d31", 1.0),
+                                  eps33T=m.eps33T * f("eps33T", 1.0), rho=m.rho * f("rho", 1.0))
                     for name, m in mats.items()}
 
-        return self._get("materials", build)
+        return self._get(("materials", group.name) if own else "materials", build)
 
     def finger(self, group):
         """The finger on ``group``'s tips (:func:`finger_load`), or None without contact."""
         def build():
             from .plant.finger import MaxwellLoad
 
-            load, f = finger_load(self.scene, group), self._factor
+            load = finger_load(self.scene, group)
+            f = lambda k: self._factor(k, group)  # noqa: E731
             if load is None:
                 return None
             return MaxwellLoad(load.mass * f("finger_mass"), load.k0 * f("finger_k0"),
@@ -159,7 +180,8 @@ class Models:
         def build():
             from .plant.beam import BeamSpec, Layer, SupportSpec, build_beam
 
-            b, mats, f = group.beam, self.materials(), self._factor
+            b, mats = group.beam, self.materials(group)
+            f = lambda k: self._factor(k, group)  # noqa: E731
             layers = tuple(Layer(mats[layer.material], layer.thickness * f("thickness")) for layer in b.layers)
             spec = BeamSpec(b.length, b.width, layers, b.connection, tuple(b.segments), b.damping * f("damping"),
                             b.elements)

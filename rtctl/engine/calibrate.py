@@ -445,12 +445,25 @@ def default_path(scene) -> Path:
 
 @dataclass(frozen=True)
 class Calibration:
-    """A calibration in use: the factors the rig's models take, and per group what the
-    calibration says of its amplitude (``uncertainty_pct``), from ``path``."""
+    """A calibration in use, from ``path``: per group its factors and what it says of the group's
+    amplitude (``uncertainty_pct``); ``factors`` the one set every group shares (None where the
+    groups' fits differ: each group's models then take its own, :meth:`models`)."""
 
     path: str
-    factors: dict
+    factors: dict | None
     groups: dict
+
+    @property
+    def group_factors(self) -> dict:
+        return {g: v["factors"] for g, v in self.groups.items()}
+
+    def models(self, scene):
+        """The rig's :class:`~rtctl.models.Models` of ``scene`` under this calibration."""
+        from ..models import Models
+
+        if self.factors is not None:
+            return Models(scene, factors=self.factors)
+        return Models(scene, group_factors=self.group_factors)
 
     def uncertainty_pct(self, group: str):
         g = self.groups.get(group)
@@ -521,11 +534,8 @@ def read(path, scene) -> Calibration:
     if missing:
         raise SceneError(f"{where}: has no calibration of group {missing[0]!r}")
     sets = {json.dumps(v["factors"], sort_keys=True) for v in out.values()}
-    if len(sets) > 1:
-        # rtctl.models.Models applies one set of factors to every bimorph beam of a scene
-        raise SceneError(f"{where}: its groups have different factors; this version applies one set to "
-                         "every bimorph group (calibrate a scene with one bimorph group)")
-    return Calibration(str(path), next(iter(out.values()))["factors"], out)
+    shared = next(iter(out.values()))["factors"] if len(sets) == 1 else None
+    return Calibration(str(path), shared, out)
 
 
 def scene_calibration(scene):
@@ -559,6 +569,7 @@ def summary_of(calibration, doc=None) -> dict | None:
     if calibration is None:
         return None
     out = {"file": calibration.path, "factors": calibration.factors,
+           **({} if calibration.factors is not None else {"group_factors": calibration.group_factors}),
            "uncertainty_pct": {g: v["uncertainty_pct"] for g, v in calibration.groups.items()}}
     if doc is not None:
         ex = doc["excitation"]

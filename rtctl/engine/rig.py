@@ -61,7 +61,7 @@ class Rig:
 
         # control.calibration: the rig's models take the device's fitted factors (None: nominal)
         self.calibration = scene_calibration(scene)
-        self.models = Models(scene, factors=self.calibration.factors if self.calibration else None)
+        self.models = self.calibration.models(scene) if self.calibration else Models(scene)
         names, groups, offsets = [], [], {}
         for g in scene.actuator:
             offsets[g.name] = len(names)
@@ -130,7 +130,7 @@ class Rig:
 
         # the simulated hardware is built from its own models; the rig's are the scene's, or a
         # calibration's, which the device must not become: only nominal ones are shared
-        hardware = device_models(scene, None if self.models.factors else self.models)
+        hardware = device_models(scene, None if (self.models.factors or self.models.group_factors) else self.models)
         groups, ch0, row0 = [], 0, 0
         for gi, g in enumerate(scene.actuator):
             n = n_channels(g)
