@@ -35,6 +35,24 @@ BIPOLAR = ("dot", "sma")  # pins whose "down" is a command of the opposite polar
 END_STOP_TYPES = ("solenoid", "dot")
 
 
+def tone_receptor(t) -> str | None:
+    """The receptor of scene tone ``t`` (``stimulus.tones[i]``): its own, or with ``auto`` the one
+    that answers at its frequency (None: none does)."""
+    return perception.auto_receptor(t.freq) if t.receptor == "auto" else t.receptor
+
+
+def tone_target_m(scene, t) -> float:
+    """Scene tone ``t``'s target tip amplitude, m: its ``target_um``, or with 0 its receptor's
+    threshold raised by ``control.margin_db``; NaN where there is neither, and on pins that move
+    between end stops (no amplitude to hold)."""
+    if scene.group(t.actuator).type in END_STOP_TYPES:
+        return math.nan
+    if t.target_um > 0:
+        return t.target_um * 1e-6
+    receptor = tone_receptor(t)
+    return perception.target_m(t.freq, receptor, scene.control.margin_db) if receptor else math.nan
+
+
 @dataclass(frozen=True)
 class Tone:
     """One scene tone (or beat pair) on one channel, with its perception target."""
@@ -136,15 +154,9 @@ class Stimulus:
         _check_tones(scene, offsets)
         for t in scene_tones:
             ch = offsets[t.actuator] + t.channel
-            receptor = perception.auto_receptor(t.freq) if t.receptor == "auto" else t.receptor
+            receptor = tone_receptor(t)
             thr = perception.threshold_m(t.freq, receptor) if receptor else math.nan
-            stops = scene.group(t.actuator).type in END_STOP_TYPES
-            if stops:
-                tgt = math.nan
-            elif t.target_um > 0:
-                tgt = t.target_um * 1e-6
-            else:
-                tgt = perception.target_m(t.freq, receptor, scene.control.margin_db) if receptor else math.nan
+            tgt = tone_target_m(scene, t)
             kb = int(math.floor(t.start * self.fs / self.block))
             if t.shape != "sine":
                 high, low, duty = (t.voltage, -t.voltage, 0.5) if t.shape == "square" else (t.voltage, 0.0, t.duty)

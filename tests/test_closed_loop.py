@@ -156,3 +156,22 @@ def test_the_report_judges_against_the_target_in_force(tmp_path):
     k = int(round(0.3 * s.timing.fs)) // s.timing.block
     assert np.all(line[0] == 6.0)
     assert np.all(line[1, :k] == 6.0) and np.all(line[1, k:] == 3.0)
+
+
+def test_an_events_target_of_0_is_the_receptors_threshold_as_in_the_scene(tmp_path):
+    """``target_um = 0`` means the receptor's threshold raised by ``control.margin_db`` in the scene,
+    and so in an event: the 40 Hz tone steps from 5 um to the Meissner target (it went silent
+    instead), and the report judges it there. A tone without a threshold is refused in one line."""
+    from rtctl import perception
+    from rtctl.errors import SceneError
+
+    ev = 'events=[{at = 0.4, set = {"stimulus.tones.2.target_um" = 0}}]'
+    s = scene.load("line-bimorph-5-closed", [ev, "stimulus.tones.2.target_um=5", "timing.duration=0.8"])
+    row = run(s, out_dir=tmp_path, plot=False).summary["channels"][2]
+    want = 1e6 * perception.target_m(40.0, "meissner", s.control.margin_db)
+    assert row["start"]["target_um"] == pytest.approx(5.0, rel=1e-12) and abs(row["start"]["error_pct"]) < 2.0
+    assert row["target_um"] == pytest.approx(want, rel=1e-12) and row["events"][0]["target_um"] == row["target_um"]
+    assert abs(row["error_pct"]) < 2.0 and row["true_um"] > 2 * 5.0, row
+    with pytest.raises(SceneError, match=r"events.0.set: stimulus.tones.2.target_um = 0 asks for the receptor's "
+                                         r"threshold, and receptor 'meissner' has none at 3000 Hz"):
+        build(scene.load("line-bimorph-5-closed", [ev, "stimulus.tones.2.target_um=5", "stimulus.tones.2.freq=3000"]))

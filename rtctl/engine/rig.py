@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import SceneError
 from ..models import Models, n_channels, n_segments, sensed_layout
 from ..needs import needs, unavailable_message
+from ..stimulus import tone_receptor, tone_target_m
 from .kernels import clear, snapshot
 from .queue import ParamQueue, drain
 from .stage import Stage
@@ -111,6 +112,7 @@ class Rig:
             self.events = schedule(scene)
             for ev in self.events:
                 self._events_at.setdefault(ev.block, []).append(ev)
+            self._check_event_targets(scene)
         self.stages = self._stages()
         # the blocks at which apply_schedule has work, sorted (None: any block may; next_busy)
         busy = self.stimulus.busy_blocks()
@@ -436,17 +438,36 @@ class Rig:
             self._apply_event(ev)
         self.queue.publish()
 
+    def _check_event_targets(self, scene) -> None:
+        """An event's ``stimulus.tones.N.target_um`` of a controlled tone must resolve to a target:
+        0 asks for the receptor's threshold, which a tone no receptor answers has not."""
+        for i, ev in enumerate(self.events):
+            for key in ev.sets:
+                if not (key.startswith("stimulus.tones.") and key.endswith(".target_um")):
+                    continue
+                n = int(key.split(".")[2])
+                t = ev.scene_after.stimulus.tones[n]
+                controlled = getattr(self, "controlled", {})
+                held = any(b in controlled for b in self.stimulus.bank_index[n])
+                if held and not math.isfinite(tone_target_m(ev.scene_after, t)):
+                    r = tone_receptor(t)
+                    why = f"receptor {r!r} has none at {t.freq:g} Hz" if r else f"no receptor answers at {t.freq:g} Hz"
+                    raise SceneError(f"{scene.source}: events.{i}.set: {key} = 0 asks for the receptor's threshold, "
+                                     f"and {why}: give the target in um")
+
     def _apply_event(self, ev) -> None:
         """An event's writes: the device's (a simulated finger's load) and new tone targets
         (the controllers', and the trace's target line)."""
         for arr, row, col, value in self.device.event_posts(ev):
             self.queue.post(self.queue.target_id(arr), row, col, value)
-        for key, value in ev.sets.items():
+        for key in ev.sets:
             if not (key.startswith("stimulus.tones.") and key.endswith(".target_um")):
                 continue
             n = int(key.split(".")[2])
             tone, bank = self.tones[n], self.stimulus.bank_index[n]
-            self.stimulus.tone_targets_um[n] = value
+            # as the scene means it: 0 is the receptor's threshold raised by control.margin_db
+            target_m = tone_target_m(ev.scene_after, ev.scene_after.stimulus.tones[n])
+            self.stimulus.tone_targets_um[n] = target_m * 1e6
             self.stimulus.sum_targets(tone.channel)
             for b in bank:
                 hit = self.controlled.get(b) if self.controllers else None
@@ -454,7 +475,7 @@ class Rig:
                     from ..control._kernels import TARGET
 
                     ctl, j = hit
-                    self.queue.post(self.queue.target_id(ctl.target), TARGET, j, value * 1e-6 / len(bank))
+                    self.queue.post(self.queue.target_id(ctl.target), TARGET, j, target_m / len(bank))
 
     def kernel_calls(self) -> list:
         """The block function as ``[(kernel, args)]``, for a callback backend's compiled callback."""
