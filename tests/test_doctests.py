@@ -12,7 +12,8 @@ MODULES = [
     "rtctl.plant.frontend", "rtctl.plant.lti", "rtctl.plant.bimorph",
     "rtctl.plant.sma", "rtctl.plant.pvdf", "rtctl.plant.hybrid", "rtctl.plant.contact",
     "rtctl.plant.solenoid", "rtctl.plant.em", "rtctl.plant.dot", "rtctl.numerics.runner",
-    "rtctl.io.audio", "rtctl.io.protocol", "rtctl.sweep.spec",
+    "rtctl.io.audio", "rtctl.io.protocol", "rtctl.sweep.spec", "rtctl.selfsense.rt", "rtctl.control.amplitude",
+    "rtctl.jsonsafe",
 ]
 
 

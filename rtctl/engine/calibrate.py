@@ -365,6 +365,7 @@ def model_of(scene, group) -> dict:
     support's ``k = inf``) as strings, so the file stays JSON."""
     import dataclasses
 
+    from ..jsonsafe import strict
     from ..models import materials
 
     mats = materials(scene)
@@ -372,17 +373,7 @@ def model_of(scene, group) -> dict:
     model = {"beam": group.beam.to_dict(), "support": group.support.to_dict(),
              "amplifier": group.amplifier.to_dict(), "sense": {k: group.sense[k] for k in _SENSE_MODEL},
              "materials": {n: dataclasses.asdict(mats[n]) for n in used}}
-    return _finite_json(model)
-
-
-def _finite_json(v):
-    if isinstance(v, dict):
-        return {str(k): _finite_json(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_finite_json(x) for x in v]
-    if isinstance(v, float) and not math.isfinite(v):
-        return repr(v)
-    return v
+    return strict(model, repr)
 
 
 def model_changes(recorded, now, at: str = "") -> list[str]:

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 
+from ..jsonsafe import strict
 from .points import WHATS
 from .spec import parse, short, toml_literal
 
@@ -73,7 +73,7 @@ def main(argv=None, runner=None) -> int:
     if args.json:
         doc = {"scene": args.scene, "what": list(whats), "out": str(res.out), "table": str(res.table),
                "csv": str(res.csv), "plots": [str(p) for p in res.plots], "summary": m, "rows": res.rows}
-        print(json.dumps(_json_value(doc), indent=1, allow_nan=False))
+        print(json.dumps(strict(doc), indent=1, allow_nan=False))
     else:
         head = f"{args.scene}: {m['points']} points (--what {','.join(whats)})"
         if m["computed"]:
@@ -91,17 +91,6 @@ def main(argv=None, runner=None) -> int:
               file=sys.stderr)
         return 1
     return 0
-
-
-def _json_value(v):
-    """``v`` as strict JSON takes it: NaN and infinities as null, containers element by element."""
-    if isinstance(v, dict):
-        return {str(k): _json_value(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_json_value(x) for x in v]
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v if isinstance(v, (str, int, float, bool, type(None))) else str(v)
 
 
 def _fmt(v) -> str:
