@@ -105,14 +105,14 @@ class Rig:
                 ch = self.channel_names[self.bank.chan[loose[0]]]
                 raise SceneError(f"{scene.source}: stimulus.play: channel {ch} plays a tip target but is not "
                                  "under amplitude control (bimorph groups with self-sensing only)")
-        self.events, self._events_at = [], {}
+        self.events, self._events_at, self._event_targets = [], {}, {}
         if scene.get("events"):
             from ..events import schedule
 
             self.events = schedule(scene)
             for ev in self.events:
                 self._events_at.setdefault(ev.block, []).append(ev)
-            self._check_event_targets(scene)
+            self._event_targets = self._resolve_event_targets(scene)
         self.stages = self._stages()
         # the blocks at which apply_schedule has work, sorted (None: any block may; next_busy)
         busy = self.stimulus.busy_blocks()
@@ -438,35 +438,36 @@ class Rig:
             self._apply_event(ev)
         self.queue.publish()
 
-    def _check_event_targets(self, scene) -> None:
-        """An event's ``stimulus.tones.N.target_um`` of a controlled tone must resolve to a target:
-        0 asks for the receptor's threshold, which a tone no receptor answers has not."""
-        for i, ev in enumerate(self.events):
+    def _resolve_event_targets(self, scene) -> dict:
+        """Per event (by its index in the scene's ``events``), the tones whose target it sets and that
+        target in m, resolved as the scene means it (0: the receptor's threshold raised by
+        ``control.margin_db``), once before the run. A controlled tone's must resolve: a tone no
+        receptor answers has no threshold to ask for."""
+        controlled = getattr(self, "controlled", {})
+        out = {}
+        for ev in self.events:
+            i = ev.index
             for key in ev.sets:
                 if not (key.startswith("stimulus.tones.") and key.endswith(".target_um")):
                     continue
                 n = int(key.split(".")[2])
                 t = ev.scene_after.stimulus.tones[n]
-                controlled = getattr(self, "controlled", {})
-                held = any(b in controlled for b in self.stimulus.bank_index[n])
-                if held and not math.isfinite(tone_target_m(ev.scene_after, t)):
+                target_m = tone_target_m(ev.scene_after, t)
+                if any(b in controlled for b in self.stimulus.bank_index[n]) and not math.isfinite(target_m):
                     r = tone_receptor(t)
                     why = f"receptor {r!r} has none at {t.freq:g} Hz" if r else f"no receptor answers at {t.freq:g} Hz"
                     raise SceneError(f"{scene.source}: events.{i}.set: {key} = 0 asks for the receptor's threshold, "
                                      f"and {why}: give the target in um")
+                out.setdefault(i, []).append((n, target_m))
+        return out
 
     def _apply_event(self, ev) -> None:
         """An event's writes: the device's (a simulated finger's load) and new tone targets
         (the controllers', and the trace's target line)."""
         for arr, row, col, value in self.device.event_posts(ev):
             self.queue.post(self.queue.target_id(arr), row, col, value)
-        for key in ev.sets:
-            if not (key.startswith("stimulus.tones.") and key.endswith(".target_um")):
-                continue
-            n = int(key.split(".")[2])
+        for n, target_m in self._event_targets.get(ev.index, ()):
             tone, bank = self.tones[n], self.stimulus.bank_index[n]
-            # as the scene means it: 0 is the receptor's threshold raised by control.margin_db
-            target_m = tone_target_m(ev.scene_after, ev.scene_after.stimulus.tones[n])
             self.stimulus.tone_targets_um[n] = target_m * 1e6
             self.stimulus.sum_targets(tone.channel)
             for b in bank:
