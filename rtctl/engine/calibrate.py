@@ -394,10 +394,16 @@ def model_changes(recorded, now, at: str = "") -> list[str]:
         if not isinstance(recorded, list) or len(recorded) != len(now):
             return [f"{at} {_short(recorded, 40)} -> {_short(now, 40)}"]
         return [x for i, (a, b) in enumerate(zip(recorded, now)) for x in model_changes(a, b, f"{at}.{i}")]
-    same = (recorded == now and type(recorded) is type(now)) or (
-        isinstance(recorded, (int, float)) and isinstance(now, (int, float)) and not isinstance(recorded, bool)
-        and not isinstance(now, bool) and recorded == now)
-    return [] if same else [f"{at} {_short(recorded, 40)} -> {_short(now, 40)}"]
+    return [] if _same(recorded, now) else [f"{at} {_short(recorded, 40)} -> {_short(now, 40)}"]
+
+
+def _same(a, b) -> bool:
+    """Equal JSON leaves: numbers by value (a file may hold 2.0 for 2), anything else (bools,
+    strings, null) only of the same type too (``True == 1`` is no match)."""
+    number = (int, float)
+    if isinstance(a, number) and isinstance(b, number) and not isinstance(a, bool) and not isinstance(b, bool):
+        return a == b
+    return type(a) is type(b) and a == b
 
 
 _HINT = ("; was a finger on the display during the excitation, a segment unconnected, or the scene's "

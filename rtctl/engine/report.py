@@ -257,17 +257,13 @@ def segment_targets(rig, ch: int) -> list[float]:
     """Channel ``ch``'s target (m) from the start and after each of the run's events: the sum of
     its tones' targets (a channel's amplitude is the sum of its tones', as a beat pair's envelope
     peak is its two sines'), NaN where a tone has none; an event's ``stimulus.tones.N.target_um``
-    replaces tone N's, as the scene means it (0: the receptor's threshold raised by the margin)."""
-    from ..stimulus import tone_target_m
-
+    replaces tone N's, as the rig resolved it (``Rig.event_targets``)."""
     per = {i: tn.target_m for i, tn in enumerate(rig.tones) if tn.channel == ch}
     out = [math.fsum(per.values())]
     for ev in rig.events:
-        for key in ev.sets:
-            if key.startswith("stimulus.tones.") and key.endswith(".target_um"):
-                i = int(key.split(".")[2])
-                if i in per:
-                    per[i] = tone_target_m(ev.scene_after, ev.scene_after.stimulus.tones[i])
+        for i, target_m in rig.event_targets.get(ev.index, ()):
+            if i in per:
+                per[i] = target_m
         out.append(math.fsum(per.values()))
     return out
 

@@ -105,14 +105,15 @@ class Rig:
                 ch = self.channel_names[self.bank.chan[loose[0]]]
                 raise SceneError(f"{scene.source}: stimulus.play: channel {ch} plays a tip target but is not "
                                  "under amplitude control (bimorph groups with self-sensing only)")
-        self.events, self._events_at, self._event_targets = [], {}, {}
+        # per event (its index in the scene's events): the tones whose target it sets, and that target in m
+        self.events, self._events_at, self.event_targets = [], {}, {}
         if scene.get("events"):
             from ..events import schedule
 
             self.events = schedule(scene)
             for ev in self.events:
                 self._events_at.setdefault(ev.block, []).append(ev)
-            self._event_targets = self._resolve_event_targets(scene)
+            self.event_targets = self._resolve_event_targets(scene)
         self.stages = self._stages()
         # the blocks at which apply_schedule has work, sorted (None: any block may; next_busy)
         busy = self.stimulus.busy_blocks()
@@ -466,7 +467,7 @@ class Rig:
         (the controllers', and the trace's target line)."""
         for arr, row, col, value in self.device.event_posts(ev):
             self.queue.post(self.queue.target_id(arr), row, col, value)
-        for n, target_m in self._event_targets.get(ev.index, ()):
+        for n, target_m in self.event_targets.get(ev.index, ()):
             tone, bank = self.tones[n], self.stimulus.bank_index[n]
             self.stimulus.tone_targets_um[n] = target_m * 1e6
             self.stimulus.sum_targets(tone.channel)
