@@ -351,14 +351,74 @@ def test_the_truth_trace_holds_every_period_once_and_shows_a_lap_as_a_gap(tmp_pa
     assert tr.layout["meta"]["client"] == "rtctl" and tr.layout["meta"]["scene"] == "fake"
 
 
-def test_the_plant_says_the_scene_events_are_not_played(capsys):
-    """The emulator's finger keeps the scene's first load: a scene whose events change it gets
-    one line on stderr saying so, a scene without events none."""
+#: line-bimorph-5-closed with its finger events (press, lift, return) early in a short run
+EVENTS = ["timing.block=64", "timing.duration=0.3", "events.0.at=0.08", "events.1.at=0.15", "events.2.at=0.22"]
+
+
+def test_the_plant_plays_the_scene_events_where_sim_does(tmp_path):
+    """The emulator's plant (the Python process callback's path) fed a sim run's drive, period
+    by period, after periods of silence: its true tip is the sim device's, before and after each
+    finger event (press harder, lift off, come back), because its clock starts at the first
+    driven period (the run's block 0: open loop, a tone from 0 s) and each event switches the load
+    at the period of its block. Without the events the tips part at the press."""
+    import numpy as np
+
+    from rtctl import scene
+    from rtctl.engine.run import run
+    from rtctl.trace import TraceReader
+
+    sc = scene.load("line-bimorph-5-closed", EVENTS + ["control.mode=open"])
+    res = run(sc, out_dir=tmp_path / "sim", plot=False)
+    tr = TraceReader(res.out_dir / "trace")
+    drive, tip = tr.signal("drive").astype(np.float64), tr.signal("tip_um")
+    assert np.any(drive[:, :64] != 0)  # the run drives its block 0 (the clock starts there)
+
+    def replay(plant, silent):
+        out = []
+        for k in range(silent + drive.shape[1] // 64):
+            plant.drive[:] = 0.0 if k < silent else drive[:, (k - silent) * 64:(k - silent + 1) * 64]
+            plant.step()
+            if k >= silent:
+                out.append(plant.truth[:, 0, :] * 1e6)
+        return np.concatenate(out, axis=1)
+
+    plant = ea.Plant(sc, 48000.0, 64)
+    assert [(at, float(v)) for at, _, _, _, v in plant.event_writes] == [(60, 1.0), (112, 2.0), (165, 1.0)]
+    got = replay(plant, silent=9)
+    # the trace's drive is float32: a few ulp, far below a load's difference
+    np.testing.assert_allclose(got, tip, rtol=1e-4, atol=1e-4 * np.abs(tip).max())
+    plant.reset()  # back to the scene's first load and a stopped clock: the same again
+    np.testing.assert_array_equal(replay(plant, silent=3), got)
+    plant.event_writes = []  # events not played: the tips part from the press on
+    plant.reset()
+    lost = np.abs(replay(plant, silent=0) - tip).max(axis=0) > 0.05 * np.abs(tip).max()
+    assert not lost[:60 * 64].any() and lost[60 * 64:112 * 64].any()
+
+
+def test_an_emulator_connected_late_plays_the_events_late_by_as_much():
+    """The clock counts from the first period the emulator hears driven: connected k blocks into
+    a run, every event lands k periods after the run's block for it (the run's block count is
+    not on the wire). The load index the group runs is the scene's first until then."""
+
     from rtctl import scene
 
-    ea.Plant(scene.load("line-bimorph-5-closed", ["timing.block=64"]), 48000.0, 64)
-    err = capsys.readouterr().err
-    assert err.splitlines() == ["rtctl emulate audio: the scene's events (3) are not played: the simulated finger "
-                                "keeps the load the scene starts with"], err
-    ea.Plant(scene.load("line-bimorph-5", ["timing.block=64"]), 48000.0, 64)
-    assert capsys.readouterr().err == ""
+    plant = ea.Plant(scene.load("line-bimorph-5-closed", EVENTS), 48000.0, 64)
+    load = plant.groups[0].load
+    seen = []
+    for k in range(200):
+        plant.drive[:] = 0.0 if k < 5 else 1e-3  # 5 silent periods, then the run k0 blocks in
+        plant.step()
+        seen.append(float(load[0, 0]))
+    # periods since the first driven one (period 5): the press at 60, lift-off 112, return 165
+    changes = [k - 5 for k in range(1, 200) if seen[k] != seen[k - 1]]
+    assert changes == [60, 112, 165] and seen[0] == 0.0
+    plant.reset()
+    assert load[0, 0] == 0.0 and plant.clock[0] == -1
+
+
+def test_a_scene_without_finger_events_writes_nothing(capsys):
+    """Nothing to play: no writes, no clock code (the process callback is the one without events)."""
+    from rtctl import scene
+
+    plant = ea.Plant(scene.load("line-bimorph-5", ["timing.block=64"]), 48000.0, 64)
+    assert plant.event_writes == [] and capsys.readouterr().err == ""

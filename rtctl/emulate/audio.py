@@ -27,8 +27,15 @@ drains into the trace; a record's ``block`` is its period's index since the rese
 main thread fell a whole ring behind on show as a gap (and in the counts on stderr at the end).
 The run's own trace holds none of it: it is hardware's, and hardware has no truth to give.
 
-The scene's ``[[events]]`` are not played: the plant keeps the finger load the scene starts with
-(an event is tied to a run's block, which the emulator does not see), and says so on stderr.
+The scene's ``[[events]]`` are played on the emulator's own clock: an event at ``at`` s takes
+effect at the start of period ``floor(at * fs / period)`` counted from the first period a connected
+run drives (any drive sample not 0) after the plant's reset, writing what it writes on ``sim``
+(:meth:`rtctl.io.sim.SimDevice.event_posts`: a bimorph group's finger load, a pin's preload). The
+emulator cannot see a run's block count: when it connects before the run's first block that is
+the run's block 0 and the finger moves at the run's own event block, as on ``sim``; when it
+connects ``k`` blocks into the run, the first period it hears counts as 0 and every event comes
+``k`` blocks after the run's. A scene whose stimulus starts silent starts the clock late by the
+same rule. Like a real finger, the emulated one is the device's: the run only knows the times.
 """
 
 from __future__ import annotations
@@ -109,10 +116,7 @@ class Plant:
         # for the --truth traces: which device this was (its mismatch is the simulated device's own)
         self.meta = {"scene": scene.scene.name, "scene_source": str(scene.source), "overrides": list(scene.overrides),
                      "mismatch": dict(models.factors or {})}
-        changed = [g for g in self.groups if getattr(g, "events", None) is not None]
-        if changed:
-            print(f"rtctl emulate audio: the scene's events ({len(scene.events)}) are not played: the simulated "
-                  "finger keeps the load the scene starts with", file=sys.stderr)
+        self._event_writes(scene, fs, period)
         # The simulated-group contract (rtctl.io.sim): kernel(*args, drive, sensed, truth) -> bits,
         # here writing each block's currents straight into ``sensed`` (no latency of its own).
         self.calls = [(g.kernel, (*g.args, plant_drive[ch], self.sensed[sr], self.truth[ch])) for g, ch, sr in groups]
@@ -136,6 +140,36 @@ class Plant:
         self.volts_per_fs = float(io.volts_per_fs)
         self.fs_per_amp = 1.0 / float(io.amps_per_fs)
 
+    def _event_writes(self, scene, fs: float, period: int) -> None:
+        """``event_writes``: ``(period, array, row, col, value)`` per write of the scene's events
+        into the simulated groups (what ``sim`` posts at the event's block), in time order, the
+        period on the emulator's clock; ``clock[0]``: periods since the first driven one after the
+        reset, -1 before it. ``event_initial``: the written arrays as built (reset puts them back)."""
+        self.clock = np.full(1, -1, dtype=np.int64)
+        self.event_writes, self.event_initial = [], []
+        changed = [g.events for g in self.groups if getattr(g, "events", None) is not None]
+        if not changed:
+            return
+        from ..events import block_of, schedule
+
+        for e in schedule(scene):
+            at = block_of(e.at, fs, period)
+            self.event_writes += [(at, *w) for ev in changed for w in ev.writes.get(e.index, ())]
+        self.event_initial = [(t, t.copy()) for ev in changed for t in ev.targets]
+
+    def _events(self) -> None:
+        """The events due at this period (the Python process callback's path; the C one is
+        generated from the same table): the clock starts at the first driven period."""
+        k = int(self.clock[0])
+        if k < 0:
+            if not self.drive.any():
+                return
+            k = 0
+        for at, arr, row, col, value in self.event_writes:
+            if at == k:
+                arr[row, col] = value
+        self.clock[0] = k + 1
+
     def record_ring(self, periods: int) -> None:
         """Keep each period's drive (V) and true tip displacement (m) for ``--truth``:
         ``rec[k % periods, 0]`` and ``rec[k % periods, 1]`` for the k-th recorded period
@@ -152,6 +186,9 @@ class Plant:
         """Every simulated group at rest (a new run starts from zero state, as on ``sim``)."""
         for g in self.groups:
             g.reset()
+        for target, initial in self.event_initial:  # the finger the scene starts with
+            target[...] = initial
+        self.clock[0] = -1
         if self.faults is not None:
             self.faults.reset()
         self.drive[:] = 0.0
@@ -160,6 +197,8 @@ class Plant:
 
     def step(self) -> int:
         """One period through every group (the Python process callback's path)."""
+        if self.event_writes:
+            self._events()
         status = 0
         for kernel, args in self.calls:
             status |= kernel(*args)
@@ -206,6 +245,7 @@ def process(nframes, arg):
         buf = carray(jack_port_get_buffer(voidptr_at({ports_in}[c]), nframes), ({period},), np.float32)
         for i in range({period}):
             {drive}[c, i] = buf[i] * scale[0]
+{events}
     st = 0
     try:
 {steps}
@@ -233,6 +273,19 @@ _RECORD = """    k = ctl[E_RECORDED] % {n_rec}
             {rec}[k, 1, c, i] = {truth}[c, 0, i]
     fence()
     ctl[E_RECORDED] += 1"""
+
+
+#: The scene's events (``Plant._events``): the clock starts at the first driven period, then
+#: each write is due at its period.
+_EVENTS = """    k = {clock}[0]
+    if k < 0:
+        for c in range({n_ch}):
+            for i in range({period}):
+                if {drive}[c, i] != 0.0:
+                    k = 0
+    if k >= 0:
+{writes}
+        {clock}[0] = k + 1"""
 
 
 def _jack_port_get_buffer():
@@ -272,7 +325,13 @@ def build_process(plant, inports, outports, ctl):
     steps = steps or "        pass"
     fields = dict(period=plant.drive.shape[1], n_in=len(inports), n_out=len(outports), ports_in=name(p_in),
                   ports_out=name(p_out), row_of=name(row_of), drive=name(plant.drive), sensed=name(plant.sensed),
-                  steps=steps, imports="\n".join(imports), stamp=package_stamp().hex()[:16], record="")
+                  steps=steps, imports="\n".join(imports), stamp=package_stamp().hex()[:16], record="",
+                  events="")
+    if plant.event_writes:
+        writes = "\n".join(f"        if k == {at}:\n            {name(arr)}[{row}, {col}] = {float(value)!r}"
+                           for at, arr, row, col, value in plant.event_writes)
+        fields["events"] = _EVENTS.format(clock=name(plant.clock), n_ch=plant.drive.shape[0],
+                                          period=fields["period"], drive=fields["drive"], writes=writes)
     if plant.rec is not None:
         fields["record"] = _RECORD.format(n_rec=plant.rec.shape[0], n_ch=plant.drive.shape[0], period=fields["period"],
                                           rec=name(plant.rec), drive=fields["drive"], truth=name(plant.truth))
