@@ -170,7 +170,8 @@ def case(device: dict, calibrated: bool, tones=TONES, events=EVENTS, duration=DU
             rows.append(judge({"name": r["name"], "freq_hz": f, "beat_hz": b, "target_um": target,
                                "error_pct": r["error_pct"], "true_um": r["true_um"],
                                "saturated": bool(r.get("saturated")), "reachable_um": r.get("reachable_um"),
-                               "uncertainty_pct": r.get("uncertainty_pct"), "segments": out}))
+                               "uncertainty_pct": r.get("uncertainty_pct"), "observer_gain": r.get("observer_gain"),
+                               "segments": out}))
     cal = summary.get("calibration") or {}
     return {"device": device, "label": label(device), "calibrated": calibrated, "wall_s": wall,
             "calibration_s": cal.get("wall_s", 0.0) + cal.get("fit_s", 0.0),

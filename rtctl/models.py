@@ -14,6 +14,11 @@ import math
 
 from .errors import ModelError, SceneError
 
+#: ``beam.modes = 0``: the simulated bimorph keeps every mode up to this many times fs ...
+MODE_FOLDS = 1.5
+#: ... and at least this many
+MIN_MODES = 4
+
 #: Largest condition number of the in-loop observer's inversion: the two-segment designs of the
 #: bundled beams sit at 5-8; beyond 1e4 the current noise would dominate the estimate.
 OBSERVER_MAX_COND = 1e4
@@ -141,6 +146,29 @@ class Models:
         if key not in self._cache:
             self._cache[key] = build()
         return self._cache[key]
+
+    def plant_modes(self, group) -> int:
+        """Modes the simulated plant of bimorph ``group`` keeps: ``beam.modes``, or with 0 every
+        mode of the beam up to :data:`MODE_FOLDS` x ``timing.fs``, at least :data:`MIN_MODES`.
+
+        Why up to 1.5 fs: the DAC's staircase puts images of each tone at fs +- f, and a mode
+        near them answers with a current that the ADC folds back onto f itself. The observer's
+        model (the continuum) has every mode; a plant without them is not the device it reads.
+        Observer error against the plant's truth, 10 Hz ... 1 kHz at 48 kHz (the bundled
+        section, docs/selfsense.md): a 15 mm beam 0.56 % with 4 modes, 0.06 % with 5 (its 5th
+        at 69 kHz); a 25 mm beam 7.4 % with 6 (to 37 kHz), 1.9 % with 7 (52 kHz), 0.6 % with 8
+        (69 kHz); a 30 mm beam 13 % with 4, 4.5 % with 8 (48 kHz), 0.7 % with 9 (61 kHz)."""
+        n = int(group.beam.modes)
+        if n > 0:
+            return n
+
+        def build():
+            import numpy as np
+
+            f, _ = self.beam(group).modes()
+            return int(min(f.size, max(MIN_MODES, np.count_nonzero(f <= MODE_FOLDS * float(self.scene.timing.fs)))))
+
+        return self._get(("modes", group.name), build)
 
     def materials(self, group=None) -> dict:
         """The scene's bimorph materials under the factors (``group``'s own, where it has them)."""
@@ -285,7 +313,7 @@ class Models:
 
             plant = BimorphPlant(self.beam(group), Amplifier(group.amplifier.bandwidth),
                                  CurrentSense(group.sense.shunt, group.sense.aa_cutoff), self.finger(group),
-                                 n_modes=group.beam.modes)
+                                 n_modes=self.plant_modes(group))
             ev = np.linalg.eigvals(plant.sys.A)
             osc = ev[(np.abs(ev.imag) > 1e-6 * np.abs(ev)) & (ev.real < 0)]
             return float(np.max(-1.0 / osc.real)) if osc.size else 0.0

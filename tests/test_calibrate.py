@@ -148,7 +148,11 @@ def test_closed_loop_on_a_calibration_holds_the_true_amplitude(measured, capsys,
     for b, a in zip(before["channels"], after["channels"]):
         if a.get("controlled") and not a["saturated"]:
             rows.append((a["name"], a["freq_hz"], b["error_pct"], a["error_pct"]))
-            assert a["uncertainty_pct"] == doc["groups"]["lateral"]["uncertainty_pct"]
+            # the scale's bound plus the observer's gain on the fit's misfit of the currents
+            g = doc["groups"]["lateral"]
+            assert a["uncertainty_pct"] == pytest.approx(g["uncertainty_pct"] + a["observer_gain"] * g["residual_pct"])
+            assert 5.0 < a["observer_gain"] < 20.0  # 15 mm beam, below its first resonance
+            assert abs(a["error_pct"]) < a["uncertainty_pct"]
             assert b["uncertainty_pct"] is None
     print("\nclosed loop, true error against the target (uncalibrated -> calibrated):")
     for name, f, e0, e1 in rows:
@@ -273,14 +277,16 @@ def test_a_calibration_of_another_model_of_the_actuator_is_refused(measured, cap
     """The factors multiply the scene's beam, support, amplifier, sense filter and materials: the
     file records them, and a run whose actuator differs in any of them is refused in one line
     naming what changed. What a calibration does not depend on (the device's secret departures,
-    the block, the finger, the limits) may differ."""
+    the block, the finger, the limits, the modes the simulated plant keeps) may differ."""
     s, _, doc, path = measured
     rec = doc["groups"]["lateral"]["model"]
     assert rec["beam"]["length"] == s.actuator[0].beam.length and rec["support"]["k"] == "inf"
     assert rec["materials"]["PZT-5A"]["E"] == pytest.approx(1.0 / 16.4e-12)  # PZT-5A's s11E
     assert K.read(path, s).factors == doc["groups"]["lateral"]["factors"]
     same = scene.load(SCENE, ["io.mismatch.E=1.3", "timing.block=64", "finger.preload=1.96",
-                              "actuator.lateral.max_voltage=100", "actuator.lateral.sense.noise=1e-5"])
+                              "actuator.lateral.max_voltage=100", "actuator.lateral.sense.noise=1e-5",
+                              "actuator.lateral.beam.modes=0"])  # the simulated plant's truncation
+    assert "modes" not in rec["beam"]
     assert K.read(path, same).factors == doc["groups"]["lateral"]["factors"]
     run_with = ["run", SCENE, "--duration", "0.01", "--no-plot", "--out", str(tmp_path / "out"), "--set",
                 f"control.calibration={path}"]

@@ -16,7 +16,7 @@ from rtctl.models import FACTORS
 
 SCENE = scene.load("line-bimorph-5")
 GOOD = {"format": FORMAT, "scene": SCENE.scene.name,
-        "groups": {"lateral": {"factors": {k: 1.0 for k in FACTORS}, "uncertainty_pct": 1.0,
+        "groups": {"lateral": {"factors": {k: 1.0 for k in FACTORS}, "uncertainty_pct": 1.0, "residual_pct": 0.05,
                                "model": model_of(SCENE, SCENE.actuator[0])}}}
 
 hostile = st.recursive(
@@ -26,7 +26,8 @@ hostile = st.recursive(
     max_leaves=8,
 )
 PLACES = [("format",), ("scene",), ("groups",), ("groups", "lateral"), ("groups", "lateral", "factors"),
-          ("groups", "lateral", "uncertainty_pct"), *[("groups", "lateral", "factors", k) for k in FACTORS],
+          ("groups", "lateral", "uncertainty_pct"), ("groups", "lateral", "residual_pct"),
+          *[("groups", "lateral", "factors", k) for k in FACTORS],
           ("groups", "lateral", "model"), ("groups", "lateral", "model", "beam"),
           ("groups", "lateral", "model", "beam", "length"), ("groups", "lateral", "model", "beam", "layers"),
           ("groups", "lateral", "model", "support", "k"), ("groups", "lateral", "model", "materials", "PZT-5A", "E")]

@@ -240,8 +240,14 @@ def _control(rig, rows) -> None:
             row["controlled"] = True
             # the channel's own window (its observer's row), not the group's longest
             row["observer_window_s"] = int(st.observer.windows[ctl.index[OBS_CH, j]]) / rig.fs
-            # how far the calibrated model's amplitude scale may be off (None: uncalibrated)
-            row["uncertainty_pct"] = rig.calibration.uncertainty_pct(row["group"]) if rig.calibration else None
+            # how much a relative error of the currents grows into the tip's, over the channel's
+            # tones; with the calibration's scale bound and residual, how far its amplitude may be
+            # off (None: uncalibrated)
+            freqs = st.observer.freqs[ctl.index[OBS_CH, j]]
+            gain = max(st.observer.designs[float(f)].gain for f in freqs if f > 0.0)
+            row["observer_gain"] = gain
+            row["uncertainty_pct"] = (rig.calibration.tone_uncertainty_pct(row["group"], gain)
+                                      if rig.calibration else None)
             sat = bool(ctl.state[SAT, j])
             row["saturated"] = row.get("saturated", False) or sat
             row.setdefault("command_v", {})[int(ctl.index[BANK, j])] = float(ctl.state[CMD, j])

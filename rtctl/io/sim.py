@@ -58,7 +58,7 @@ def _bimorph(models, g, gi, fs, block):
     sense = CurrentSense(s.shunt, s.aa_cutoff, s.aa_order, s.bits, s.full_scale, s.noise,
                          seed=models.scene.io.seed + 7919 * gi)
     plant = BimorphPlant(models.beam(g), Amplifier(g.amplifier.bandwidth), sense, models.finger(g),
-                         n_modes=g.beam.modes)
+                         n_modes=models.plant_modes(g))
     _check_shunt(models.scene, g, float(np.max(plant.fe.Cp)), fs)
     loads = [plant.finger]
     for finger in [*_event_fingers(models, g).values(), *_fault_fingers(models, g)]:
@@ -69,7 +69,7 @@ def _bimorph(models, g, gi, fs, block):
     from ..plant.switching import SwitchedSimGroup
 
     plants = [plant] + [BimorphPlant(models.beam(g), Amplifier(g.amplifier.bandwidth), sense, f,
-                                     n_modes=g.beam.modes) for f in loads[1:]]
+                                     n_modes=models.plant_modes(g)) for f in loads[1:]]
     return SwitchedSimGroup(plants, fs, g.grid[0] * g.grid[1], max_block=max(block, 1))
 
 

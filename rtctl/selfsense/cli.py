@@ -6,9 +6,9 @@ admittance per volt for the finger loads of :func:`~rtctl.selfsense.sweep.finger
 simulated FE plant at the scene's sample rate and front end, with and without +-5 % model
 mismatch (``DIR/selfsense_<group>.json``). The simulated truth keeps every mode up to 5 fs
 (:func:`~rtctl.selfsense.sweep.truth_modes`, 8 for the bundled beam), not the loop plant's
-``beam.modes`` (4): the DAC staircase's images reach the currents through modes up to ~4 fs, and
-the 4-mode plant misses them (docs/selfsense.md, Sec. 5). ``--truth-modes 4`` scores against
-the loop plant instead.
+``beam.modes`` (4 in the bundled scenes; by default every mode to 1.5 fs): the DAC staircase's
+images reach the currents through modes up to ~4 fs, and the 4-mode plant misses them
+(docs/selfsense.md, Sec. 5). ``--truth-modes 4`` scores against the loop plant instead.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.
         finger = models.finger(g)
         kw = dict(fs=fs, block=int(sc.timing.block), amplifier_hz=g.amplifier.bandwidth,
                   aa_cutoff_hz=g.sense.aa_cutoff, aa_order=g.sense.aa_order, shunt=g.sense.shunt,
-                  n_modes=truth_modes or converged_modes(fe, fs, int(g.beam.modes)))
+                  n_modes=truth_modes or converged_modes(fe, fs, models.plant_modes(g)))
         loads = finger_loads(finger)
         beam = TMMBeam.from_fe(fe)
         fgrid = np.geomspace(5.0, 2000.0, 200)
@@ -84,7 +84,7 @@ def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.
         sw = sweep(fe, finger, freqs=tuple(freqs), volts=10.0, snr_db=snr_db, mismatches=mm,
                    beat_hz=beat, **kw)
         facts = tmm_facts(fe, finger)
-        entry = {**facts, "plot": str(png), "loop_plant_modes": int(g.beam.modes), **sw}
+        entry = {**facts, "plot": str(png), "loop_plant_modes": models.plant_modes(g), **sw}
         (outdir / f"selfsense_{g.name}.json").write_text(json.dumps(entry, indent=1))
         result["groups"][g.name] = entry
     if not result["groups"]:

@@ -8,7 +8,7 @@
   amplitude at ``max_voltage`` under the finger over that receptor's tones: each tone alone on
   its channel at the group's ``max_voltage`` (a beat pair: half of it on each of its two tones,
   the envelope peak), through the simulated plant's frequency response (the finite-element beam
-  with ``beam.modes`` modes, finger and amplifier: what a ``sim`` run's tip does in steady state).
+  with the modes ``beam.modes`` keeps, finger and amplifier: what a ``sim`` run's tip does in steady state).
   Columns ``R.reach_um``, ``R.freq_hz`` and ``R.channel`` (the tone that reaches furthest),
   ``R.threshold_um`` (:mod:`rtctl.perception`), ``R.margin_db`` (``20 log10(reach /
   threshold)``), ``R.needed_v`` (the drive that would just reach the threshold) and ``R.felt``
@@ -161,7 +161,7 @@ def reach_metrics(scene) -> dict:
         if g.name not in plants:  # the simulated plant's own build (rtctl.io.sim), noise aside
             plants[g.name] = BimorphPlant(models.beam(g), Amplifier(g.amplifier.bandwidth),
                                           CurrentSense(g.sense.shunt, g.sense.aa_cutoff, g.sense.aa_order),
-                                          models.finger(g), n_modes=g.beam.modes)
+                                          models.finger(g), n_modes=models.plant_modes(g))
         if t.beat > 0:
             from ..dsp import beat_tones
 
@@ -201,7 +201,7 @@ def selfsense_metrics(scene) -> dict:
                         for f in ((t.freq,) if t.beat == 0 else (t.freq - t.beat / 2, t.freq + t.beat / 2))})
         kw = dict(fs=fs, block=int(scene.timing.block), amplifier_hz=g.amplifier.bandwidth,
                   aa_cutoff_hz=g.sense.aa_cutoff, aa_order=g.sense.aa_order, shunt=g.sense.shunt,
-                  n_modes=truth_modes(fe, fs, int(g.beam.modes)))
+                  n_modes=truth_modes(fe, fs, models.plant_modes(g)))
         cases = [run_case(fe, finger, [f], [SELFSENSE_VOLTS], **kw) for f in (freqs or SELFSENSE_FREQS)]
         out[f"{g.name}.amp_err_pct"] = max(c["amp_err_pct"] for c in cases)
         out[f"{g.name}.phase_err_deg"] = max(c["phase_err_deg"] for c in cases)
