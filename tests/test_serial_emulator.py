@@ -266,9 +266,13 @@ def test_the_sma_scene_runs_over_serial_within_its_duty_bound(emulator, tmp_path
     emu = emulator("sma-8x8")
     cmd = [sys.executable, "-m", "rtctl.cli", "run", "sma-8x8", "--set", "io.backend=serial",
            "--set", f"io.port={emu.port}", "--set", "timing.duration=5.5", "--json", "--no-plot",
-           "--set", "stimulus.tones.0.freq=0.05"]
+           "--set", "stimulus.tones.0.freq=0.05", "--out", str(tmp_path / "run")]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
+    if run.returncode != 0:  # whether the emulator died or hung says whose the failure is
+        alive = emu.proc.poll() is None
+        code, err = emu.stop()
+        pytest.fail(f"{run.stderr}\nthe emulator was {'running' if alive else 'gone'} (exit {code}); its "
+                    f"stderr: {err[-3000:]!r}")
     s = json.loads(run.stdout)
     limited = {c["name"]: c["limited_by"] for c in s["channels"] if c["limited"]}
     assert not s["faults"] and s["io"]["frames_acked"] > 0
