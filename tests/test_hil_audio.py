@@ -121,6 +121,12 @@ def test_audio_run_reaches_the_sim_amplitudes(audio_run):
     np.testing.assert_array_equal(aud.signal("drive")[:, :n], sim.signal("drive")[:, :n])
     for a, s in zip(r["audio"]["channels"], r["sim"]["channels"]):
         assert a["v_peak"] == s["v_peak"] and a["name"] == s["name"]
+    # What came back needs a clean run: a lost or doubled JACK period inside the lock-in window
+    # moves every row's amplitude and phase (-1.2 ... -5.8 % seen in a run with hundreds of
+    # xruns), and the observer magnifies it
+    if not clean(r):
+        pytest.skip(f"xruns in every try ({'; '.join(r['tries'])}): the sensed rows and the observer are "
+                    "not judged on a run that lost periods")
     # sensed currents: the last second (integer periods of every tone), per row at its tone
     S_a, S_s = aud.signal("sensed")[:, n // 2:n], sim.signal("sensed")[:, n // 2:n]
     assert S_a.shape == S_s.shape == (10, n // 2)
@@ -149,8 +155,7 @@ def test_audio_run_reaches_the_sim_amplitudes(audio_run):
     # comparison needs a clean run, and says so when it did not get one.
     errs = [a["estimated_um"] / s["true_um"] - 1 for a, s in zip(r["audio"]["channels"], r["sim"]["channels"])]
     print(f"observer through the audio round trip vs sim truth: {np.round(np.array(errs) * 100, 3)} %")
-    if clean(r):
-        assert max(abs(e) for e in errs) < 0.01, errs
+    assert max(abs(e) for e in errs) < 0.01, errs
 
 
 def test_no_xruns(audio_run):
