@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 import pytest
+from closed_forms import CANTILEVER_ROOTS
 
 from rtctl import scene
 from rtctl.engine.run import run
@@ -29,8 +30,7 @@ E, RHO = 1.0 / 16.4e-12, 7750.0
 def cantilever_frequencies(length, width=1.5e-3, h=0.6e-3, n=40):
     """Clamped-free Euler-Bernoulli frequencies of a homogeneous section, Hz: the tabulated roots
     of 1 + cos l cosh l = 0, then (2k - 1) pi / 2 (within 1e-7 from the 5th on)."""
-    roots = np.r_[[1.8751040687, 4.6940911330, 7.8547574382, 10.995540735],
-                  (2 * np.arange(5, n + 1) - 1) * math.pi / 2]
+    roots = np.r_[CANTILEVER_ROOTS, (2 * np.arange(CANTILEVER_ROOTS.size + 1, n + 1) - 1) * math.pi / 2]
     EI, rhoA = E * width * h**3 / 12.0, RHO * width * h
     return roots**2 / (2 * math.pi * length**2) * math.sqrt(EI / rhoA)
 
