@@ -199,7 +199,9 @@ def test_keepalive_and_changes(device):
     assert 0.9 * keepalive <= np.median(gaps) < 1.5 * keepalive
     s = be.stats()
     json.dumps(s)
-    assert s["frames_acked"] >= s["frames_sent"] - 1 and s["resends"] == 0 and s["error"] is None
+    # nothing is lost; a busy machine may hold an answer past io.timeout, and the answer to its
+    # resent copy then arrives stale
+    assert s["frames_acked"] >= s["frames_sent"] - 1 and s["resends"] == s["stale_acks"] and s["error"] is None
     assert be.probe.shape == (len(be.probe_names), 32) and be.probe[1, 0] == 16.0  # every pin down
     be.close()
 
@@ -231,8 +233,9 @@ def test_a_nack_of_the_frame_in_flight_is_a_counted_resend(device):
     be, out = _open(dev.path, "io.keepalive=0.01")
     assert _run(be, 0.2) == 0
     s = be.stats()
-    assert s["nacks"] == s["resends"] > 5 and s["frames_acked"] >= s["frames_sent"] - 1  # one may fly
-    assert s["timeouts"] == 0 and s["error"] is None
+    assert s["nacks"] > 5 and s["frames_acked"] >= s["frames_sent"] - 1  # one may fly
+    # every NACK is resent at once; any timeout is an answer a busy machine held late (stale after)
+    assert s["resends"] == s["nacks"] + s["timeouts"] and s["timeouts"] == s["stale_acks"] and s["error"] is None
     be.close()
 
 
