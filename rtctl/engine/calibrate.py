@@ -268,16 +268,16 @@ def measure(scene, run, say=None) -> Measurement:
 def calibrate(scene, run, say=None) -> dict:
     """Measure (:func:`measure`) and fit (:func:`document`) every bimorph group: the calibration
     document (what ``rtctl calibrate --json`` prints and the file holds)."""
-    return document(scene, measure(scene, run, say))
+    return document(scene, measure(scene, run, say), say)
 
 
-def document(scene, m: Measurement) -> dict:
+def document(scene, m: Measurement, say=None) -> dict:
     """Fit every group of measurement ``m`` of ``scene``; anchor the scale on ``beam.mass`` where
-    given; the calibration document."""
+    given; the calibration document. ``say`` hears of a fit that takes long."""
     import numpy as np
 
     from ..models import Models
-    from ..selfsense.calibrate import anchored, beam_mass, fit, scale_uncertainty_pct
+    from ..selfsense.calibrate import Currents, anchored, beam_mass, fit, scale_uncertainty_pct
     from ..selfsense.frontend import FrontEnd
     from ..selfsense.identify import BeamParams
 
@@ -291,6 +291,9 @@ def document(scene, m: Measurement) -> dict:
         # 20 images a side: the rest moves no factor by more than 1e-5 (40 would cost twice the time)
         front = FrontEnd(m.fs, g.amplifier.bandwidth, g.sense.aa_cutoff, g.sense.aa_order, n_images=20)
         cur = m.currents[p.name]
+        if not Currents(params).exact_shortcut:
+            _say(say, f"fitting group {p.name!r}: its root is on springs, so every try of the fit solves "
+                      "the beam (about a minute)")
         try:
             # currents that fit no beam drive the factors to absurd values (a damping of 1e-37):
             # let the model's infinities run into the checks below rather than into warnings

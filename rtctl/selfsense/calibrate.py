@@ -84,7 +84,7 @@ class Currents:
 
     Building a transfer-matrix beam is mostly solving for its natural frequencies, and a fit calls
     the model hundreds of times. Two exact relations avoid that for ``E``, ``d31``, ``eps33T`` and
-    the damping (any other factor, or a support with mass, takes ``response`` itself):
+    the damping (any other factor, or a root on springs, takes ``response`` itself):
 
     * the mechanics depend on ``E`` (bending stiffness), the density and the support; a volt
       acts through the moment per volt ``m_p ~ d31 E`` only, and each segment's charge is
@@ -93,8 +93,10 @@ class Currents:
     * ``E`` x ``a`` gives the currents of ``d31`` x ``sqrt(a)`` and density x ``1/a``
       (:data:`~rtctl.selfsense.identify.DENSITY_DIRECTION`), and density x ``1/a`` at ``f`` is
       the nominal beam at ``f / sqrt(a)`` (``rho A w^2 / EI`` is all the field sees; the damping
-      goes with the modes' frequencies; springs at the root do not see the frequency, a root
-      mass would);
+      goes with the modes' frequencies) -- on a clamped (or free) root only: springs at the root
+      would have to go x ``1/a`` as well (the root's shear and moment are ``EI`` times the
+      deflection's derivatives, and the springs' forces are not), and a root mass sees the
+      frequency, so a root on springs takes ``response``;
 
     so ``I(f) = j w (Cp(E, d31, eps33T) + a b^2 Q(f / sqrt(a)))`` with ``Q`` the nominal beam's
     motional charge per volt at the fitted damping (:meth:`TMMBeam.with_damping`: its modes are
@@ -105,7 +107,8 @@ class Currents:
         self.params = params
         self.base = params.beam()
         sup = params.support
-        self.exact_shortcut = sup.mass == 0.0 and sup.inertia == 0.0
+        self.exact_shortcut = (sup.mass == 0.0 and sup.inertia == 0.0
+                               and all(v in (0.0, math.inf) for v in (sup.k, sup.k_rot)))
 
     def __call__(self, freqs, factors: dict | None = None) -> np.ndarray:
         """A/V, shape (n, n_seg)."""
