@@ -84,7 +84,7 @@ class Currents:
 
     Building a transfer-matrix beam is mostly solving for its natural frequencies, and a fit calls
     the model hundreds of times. Two exact relations avoid that for ``E``, ``d31``, ``eps33T`` and
-    the damping (any other factor, or a root on springs, takes ``response`` itself):
+    the damping (any other factor takes ``response`` itself):
 
     * the mechanics depend on ``E`` (bending stiffness), the density and the support; a volt
       acts through the moment per volt ``m_p ~ d31 E`` only, and each segment's charge is
@@ -96,11 +96,13 @@ class Currents:
       goes with the modes' frequencies) -- on a clamped (or free) root only: springs at the root
       would have to go x ``1/a`` as well (the root's shear and moment are ``EI`` times the
       deflection's derivatives, and the springs' forces are not), and a root mass sees the
-      frequency, so a root on springs takes ``response``;
+      frequency;
 
     so ``I(f) = j w (Cp(E, d31, eps33T) + a b^2 Q(f / sqrt(a)))`` with ``Q`` the nominal beam's
     motional charge per volt at the fitted damping (:meth:`TMMBeam.with_damping`: its modes are
-    the nominal beam's), ``a``, ``b`` the ``E`` and ``d31`` factors.
+    the nominal beam's), ``a``, ``b`` the ``E`` and ``d31`` factors. A root on springs or with
+    a mass takes ``Q_a(f)`` of the beam built with ``E`` x ``a`` instead (``b^2`` and the
+    damping still apply to it as above), kept for the few ``E`` values a fit's step visits.
     """
 
     def __init__(self, params: BeamParams):
@@ -109,18 +111,30 @@ class Currents:
         sup = params.support
         self.exact_shortcut = (sup.mass == 0.0 and sup.inertia == 0.0
                                and all(v in (0.0, math.inf) for v in (sup.k, sup.k_rot)))
+        self._stiffened = {}  # E factor -> the beam built with it (a root the shortcut misses)
+
+    def _beam_with_E(self, a: float):
+        beam = self._stiffened.get(a)
+        if beam is None:
+            if len(self._stiffened) >= 8:  # a fit visits a few values per step; keep memory flat
+                self._stiffened.clear()
+            beam = self._stiffened[a] = self.params.scaled({"E": a}).beam()
+        return beam
 
     def __call__(self, freqs, factors: dict | None = None) -> np.ndarray:
         """A/V, shape (n, n_seg)."""
         f = np.atleast_1d(np.asarray(freqs, dtype=float))
         fac = dict(factors or {})
-        if not self.exact_shortcut or set(fac) - set(FIT_NAMES):
+        if set(fac) - set(FIT_NAMES):
             return response(self.params, None, f, fac)[0]
         a, b = fac.get("E", 1.0), fac.get("d31", 1.0)
-        beam = self.base.with_damping(self.base.zeta * fac.get("damping", 1.0))
-        fp = f / math.sqrt(a)
+        if self.exact_shortcut:
+            beam, fp, stiff = self.base, f / math.sqrt(a), a
+        else:
+            beam, fp, stiff = self._beam_with_E(a), f, 1.0
+        beam = beam.with_damping(beam.zeta * fac.get("damping", 1.0))
         q = beam.response(fp)["current"] / (2j * math.pi * fp)[:, None] - beam.cp[None, :]
-        return 2j * math.pi * f[:, None] * (blocked(self.params, fac)[None, :] + a * b * b * q)
+        return 2j * math.pi * f[:, None] * (blocked(self.params, fac)[None, :] + stiff * b * b * q)
 
     def cond(self, freqs, factors: dict, names=FIT_NAMES, h: float = 1e-5):
         """Condition number and singular values of ``d log I / d log p`` (real parts, then
