@@ -277,7 +277,7 @@ def document(scene, m: Measurement, say=None) -> dict:
     import numpy as np
 
     from ..models import Models
-    from ..selfsense.calibrate import Currents, anchored, beam_mass, fit, scale_uncertainty_pct
+    from ..selfsense.calibrate import anchored, beam_mass, fit, scale_uncertainty_pct, warps_with_E
     from ..selfsense.frontend import FrontEnd
     from ..selfsense.identify import BeamParams
 
@@ -291,9 +291,9 @@ def document(scene, m: Measurement, say=None) -> dict:
         # 20 images a side: the rest moves no factor by more than 1e-5 (40 would cost twice the time)
         front = FrontEnd(m.fs, g.amplifier.bandwidth, g.sense.aa_cutoff, g.sense.aa_order, n_images=20)
         cur = m.currents[p.name]
-        if not Currents(params).exact_shortcut:
-            _say(say, f"fitting group {p.name!r}: its root is on springs, so every try of the fit solves "
-                      "the beam (about a minute)")
+        if not warps_with_E(params.support):
+            _say(say, f"fitting group {p.name!r}: its root is on springs, so the fit solves the beam "
+                      "for every E it tries (tens of seconds)")
         try:
             # currents that fit no beam drive the factors to absurd values (a damping of 1e-37):
             # let the model's infinities run into the checks below rather than into warnings

@@ -78,6 +78,13 @@ def images(params: BeamParams, front: FrontEnd, freqs, factors: dict | None = No
     return np.array([front.images(f, lambda om: beam.solve(om)["current"]) for f in np.atleast_1d(freqs)])
 
 
+def warps_with_E(support) -> bool:
+    """Whether ``E`` x ``a`` is the nominal beam at ``f / sqrt(a)`` on this root (see
+    :class:`Currents`): no mass on it, and each spring rigid or absent."""
+    return (support.mass == 0.0 and support.inertia == 0.0
+            and all(v in (0.0, math.inf) for v in (support.k, support.k_rot)))
+
+
 class Currents:
     """Segment currents per actuator volt of ``params`` scaled by factors, finger lifted: what
     :func:`rtctl.selfsense.identify.response` gives, without building a beam per call.
@@ -108,9 +115,7 @@ class Currents:
     def __init__(self, params: BeamParams):
         self.params = params
         self.base = params.beam()
-        sup = params.support
-        self.exact_shortcut = (sup.mass == 0.0 and sup.inertia == 0.0
-                               and all(v in (0.0, math.inf) for v in (sup.k, sup.k_rot)))
+        self.exact_shortcut = warps_with_E(params.support)
         self._stiffened = {}  # E factor -> the beam built with it (a root the shortcut misses)
 
     def _beam_with_E(self, a: float):
