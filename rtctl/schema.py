@@ -188,7 +188,7 @@ ACTUATOR = Table(
                 "segments": Key("floats", (1.0,), "", "electrode split, fractions of the length from the clamp (sum 1)", 0.0, 1.0, open_lo=True, min_items=1, max_items=8),
                 "damping": Key("float", 0.01, "", "modal damping ratio", 0.0, 0.5),
                 "elements": Key("int", 24, "", "finite elements along the beam", 2, 400),
-                "modes": Key("int", 0, "", "modes kept in the simulated plant (plus a static correction); 0 = every mode up to 1.5 fs, at least 4, and up to the last mode near the images at 2 fs +- f (the drive's images reach the segment currents through the modes near them)", 0, 40),
+                "modes": Key("int", 0, "", "modes kept in the simulated plant (plus a static correction); 0 = every mode up to 1.5 fs, at least 4, and up to the last mode near the images at 2, 3 and 4 fs +- f (the drive's images reach the segment currents through the modes near them)", 0, 40),
                 "mass": Key("float", 0.0, "kg", "measured mass of the free length (what the model's length covers), for `rtctl calibrate`: anchors the amplitude scale the segment currents cannot see; 0 = not measured", 0.0, 1.0),
                 "tolerance": Key("float", 0.02, "", "relative bound on the layer thicknesses and the density (how well they are known): the calibrated amplitude's uncertainty without `mass`", 0.0, 0.5),
                 "mass_tolerance": Key("float", 0.005, "", "relative bound on the `mass` reading: the calibrated amplitude's uncertainty with it", 0.0, 0.5, open_lo=True),

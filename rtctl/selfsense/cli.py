@@ -6,7 +6,7 @@ admittance per volt for the finger loads of :func:`~rtctl.selfsense.sweep.finger
 simulated FE plant at the scene's sample rate and front end, with and without +-5 % model
 mismatch (``DIR/selfsense_<group>.json``). The simulated truth keeps every mode up to 5 fs
 (:func:`~rtctl.selfsense.sweep.truth_modes`, 8 for the bundled beam), not the loop plant's
-``beam.modes`` (4 in the bundled scenes; by default every mode to 1.5 fs and near 2 fs): the DAC staircase's
+``beam.modes`` (4 in the bundled scenes; by default every mode to 1.5 fs and near 2-4 fs): the DAC staircase's
 images reach the currents through modes up to ~4 fs, and the 4-mode plant misses them
 (docs/selfsense.md, Sec. 5). ``--truth-modes 4`` scores against the loop plant instead.
 """
