@@ -399,4 +399,27 @@ class Models:
         front = FrontEnd(fs, group.amplifier.bandwidth, group.sense.aa_cutoff, group.sense.aa_order)
         return Observer(TMMBeam.from_fe(self.beam(group)), freqs, fs, block, front,
                         window=window, image_load=self.finger(group), max_cond=OBSERVER_MAX_COND, wave=wave,
-                        hop=hop, lstsq=lstsq)
+                        hop=hop, lstsq=lstsq, image_loads=self.other_fingers(group))
+
+    def other_fingers(self, group) -> list:
+        """The loads ``group``'s tips may see besides :meth:`finger`: none (the finger lifted) and
+        every other set of the scene's finger subject in the group's direction, under the factors.
+        The observer reads its currents through whichever of them its residual favours (the
+        aliased images see the tip's load at tens of kHz; :class:`~rtctl.selfsense.rt.Observer`)."""
+        from .plant.finger import MaxwellLoad
+
+        f = lambda k: self._factor(k, group)  # noqa: E731
+        first = self.finger(group)
+        fi = self.scene.finger
+        sets = [s for s in fi.subjects if s.name == fi.subject and s.direction == group.direction] if fi.subject else []
+        out = [] if first is None else [None]
+        for s in sets:
+            load = MaxwellLoad(s.mass * f("finger_mass"), s.k0 * f("finger_k0"),
+                               tuple((b.k * f("finger_branches"), b.tau) for b in s.branches))
+            if load != first and load not in out:
+                out.append(load)
+        if first is None and not sets:
+            table = fi[group.direction]
+            out.append(MaxwellLoad(table.mass * f("finger_mass"), table.k0 * f("finger_k0"),
+                                   tuple((b.k * f("finger_branches"), b.tau) for b in table.branches)))
+        return out

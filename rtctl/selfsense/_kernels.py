@@ -10,6 +10,15 @@ from rtctl.dsp import _kernels as _dk
 
 # Status bit: an estimate is NaN/Inf (a poisoned reading or state); the sim uses 1 and 2.
 STATUS_NONFINITE = 4
+#: The estimate row of the tip moment (``EST_NAMES``), the residual :func:`_pick_load` compares.
+ROW_MOMENT = 3
+#: A block votes against the candidates whose tip-moment residual (squared) is over this many
+#: times the least (twice the moment, or more): no vote where none is.
+DECISIVE = 0.25
+#: A candidate load takes over when its smoothed loss of the blocks' votes (the least tip-moment
+#: residual wins) is under this share of the one in use's: two candidates that noise or the
+#: finger's sets split (50 g and 200 g of skin pin the tip alike) do not alternate.
+SWITCH = 0.25
 
 _ZR, _ZI, _WR, _WI = _dk.ZR, _dk.ZI, _dk.WR, _dk.WI
 _XR, _XI = _dk.X_R, _dk.X_I  # the window sums the lock-ins' estimates are made of
@@ -20,8 +29,9 @@ _LANES = 8
 
 @kernel
 def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring,
-                     i_solve, u_out, back, H, scale, est, wave, drive, sensed):
-    """One block: demodulate drive and currents, apply the observer, rebuild the tip waveform.
+                     i_solve, u_out, back, H, Hc, pick, resid, scale, est, wave, drive, sensed):
+    """One block: demodulate drive and currents, take each channel's image load (:func:`_pick_load`),
+    apply the observer, rebuild the tip waveform.
 
     Parameters
     ----------
@@ -36,7 +46,13 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     back : ndarray, shape (4 + n, n_ch * n_tones)
         Scratch of the waveform rebuild (see :func:`_rebuild`).
     H : ndarray, shape (n_ch, n_tones, n_est, 1 + n_seg, 2)
-        Observer matrices (real, imaginary); all zero for an unused tone slot.
+        Observer matrices (real, imaginary) in use; all zero for an unused tone slot.
+    Hc : ndarray, shape (n_ch, n_tones, n_loads, n_est, 1 + n_seg, 2)
+        The observer matrices of each candidate load at the images (``H`` is a copy of one).
+    pick : ndarray int64, shape (n_ch,)
+        The candidate each channel's ``H`` holds; updated.
+    resid : ndarray, shape (n_ch, 2, n_loads)
+        Each candidate's smoothed loss of the blocks' votes, and scratch; updated.
     scale : ndarray, shape (n_ch,)
         ``2 / window`` of each channel: lock-in sum to phasor.
     est : ndarray, shape (n_ch, n_tones, n_est, 2)
@@ -55,6 +71,8 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     """
     _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out)
     _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, sensed)
+    if Hc.shape[2] > 1:
+        _pick_load(u_acc, i_acc, H, Hc, pick, resid, scale, wave.shape[1])
     n_ch, n_t, n_est = est.shape[0], est.shape[1], est.shape[2]
     n_seg = H.shape[3] - 1
     status = 0
@@ -85,6 +103,90 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
                     status |= STATUS_NONFINITE
     _rebuild(u_ref, est, back, wave)
     return status
+
+
+@kernel
+def _pick_load(u_acc, i_acc, H, Hc, pick, resid, scale, block):
+    """Per channel, the candidate load at the images whose observer reads the smaller tip moment.
+
+    The aliased images of the drive (2 fs +- f and beyond) see the tip's load at tens of kHz, where
+    any skin in contact pins the tip and none leaves it free: a beam with a mode near an image
+    band reads its currents through a different image term with the finger on or off (a 25 mm
+    beam lifted, read with the finger's images, 2.6-8.2 % off). Neither load puts a moment on the
+    tip, so the tip moment a candidate's observer reads is its residual (squared, summed over the
+    channel's tones). A block whose least residual is under :data:`DECISIVE` of another's votes:
+    every candidate that far above the least loses (``resid[c, 1]`` 1), the rest win (0: the 50 g
+    and 200 g sets of a finger pin the tip alike, and neither stands out from the other), and the
+    losses are smoothed over about one window of the channel's votes (``resid[c, 0]``, a
+    first-order lag of ``block / window``). A vote is scale-free: a window straddling a drive step
+    (whose residuals jump 10-100 fold for every candidate alike) weighs no more than any other
+    block; and where noise decides (10 Hz at 10 V, or 250 Hz at 1 V, with 1 uV of sense noise),
+    or a transient that no candidate explains, no candidate stands out and nothing is voted (a
+    choice made there, at a start, stayed: noise cannot undo it). A candidate takes over when its
+    smoothed loss is under :data:`SWITCH` of the one in use's; a silent or non-finite window
+    changes nothing. The candidates' matrices differ in the drive's column alone (the images
+    enter with the drive; :class:`~rtctl.selfsense.rt.Observer` checks it).
+    """
+    n_ch, n_t = H.shape[0], H.shape[1]
+    n_seg = H.shape[3] - 1
+    n_q = Hc.shape[2]
+    for c in range(n_ch):
+        sc = scale[c]
+        for q in range(n_q):
+            resid[c, 1, q] = 0.0
+        for k in range(n_t):
+            # the currents' share of the moment is every candidate's (only the drive's column
+            # holds the images), so it is summed once
+            cr = 0.0
+            ci = 0.0
+            for j in range(n_seg):
+                js = (c * n_seg + j) * n_t + k
+                sr = sc * i_acc[_XR, js]
+                si = sc * i_acc[_XI, js]
+                hr = Hc[c, k, 0, ROW_MOMENT, 1 + j, 0]
+                hi = Hc[c, k, 0, ROW_MOMENT, 1 + j, 1]
+                cr += hr * sr - hi * si
+                ci += hr * si + hi * sr
+            us = c * n_t + k
+            dr = sc * u_acc[_XR, us]
+            di = sc * u_acc[_XI, us]
+            for q in range(n_q):
+                hr = Hc[c, k, q, ROW_MOMENT, 0, 0]
+                hi = Hc[c, k, q, ROW_MOMENT, 0, 1]
+                tr = cr + hr * dr - hi * di
+                ti = ci + hr * di + hi * dr
+                resid[c, 1, q] += tr * tr + ti * ti
+        total = 0.0
+        for q in range(n_q):
+            total += resid[c, 1, q]
+        if not (total > 0.0 and total < np.inf):
+            continue
+        win = 0
+        for q in range(1, n_q):
+            if resid[c, 1, q] < resid[c, 1, win]:
+                win = q
+        worst = 0.0
+        for q in range(n_q):
+            worst = max(worst, resid[c, 1, q])
+        least = resid[c, 1, win]
+        if not least < DECISIVE * worst:
+            continue                               # no candidate stands out: no vote
+        a = min(1.0, 0.5 * block * sc)             # block / window
+        for q in range(n_q):
+            resid[c, 1, q] = 1.0 if least < DECISIVE * resid[c, 1, q] else 0.0
+            resid[c, 0, q] += a * (resid[c, 1, q] - resid[c, 0, q])
+        cur = pick[c]
+        best = cur
+        for q in range(n_q):
+            if resid[c, 0, q] < resid[c, 0, best]:
+                best = q
+        if best != cur and resid[c, 0, best] < SWITCH * resid[c, 0, cur]:
+            for k in range(n_t):
+                for e in range(H.shape[2]):
+                    for j in range(n_seg + 1):
+                        H[c, k, e, j, 0] = Hc[c, k, best, e, j, 0]
+                        H[c, k, e, j, 1] = Hc[c, k, best, e, j, 1]
+            pick[c] = best
 
 
 @kernel

@@ -241,6 +241,10 @@ class Observer:
         drive and currents alike, free of one another over windows of any length.
     image_load : MaxwellLoad, optional
         Load assumed for the aliased images.
+    image_loads : sequence of MaxwellLoad or None, optional
+        Further loads the images may see (None: a free tip, the finger lifted): each channel reads
+        its currents through the candidate whose observer leaves the least tip-moment residual
+        most often (:func:`~rtctl.selfsense._kernels._pick_load`), starting with ``image_load``.
     max_cond : float
         Refuse ill-conditioned frequencies (also for four segments, whose tip estimate is less
         fragile than the support stiffness that :func:`~rtctl.selfsense.observer.design` guards
@@ -258,6 +262,13 @@ class Observer:
     scale : ndarray, shape (n_channels,)
         ``2 / windows``: a lock-in window sum to a phasor, per channel.
     H : ndarray, shape (n_channels, n_tones, N_EST, 1 + n_seg, 2)
+        The observer matrices in use (a copy of one candidate's).
+    Hc : ndarray, shape (n_channels, n_tones, n_loads, N_EST, 1 + n_seg, 2)
+        Each candidate image load's (``image_load`` first, then ``image_loads``).
+    pick : ndarray of int64, shape (n_channels,)
+        The candidate each channel's ``H`` holds.
+    resid : ndarray, shape (n_channels, 2, n_loads)
+        Each candidate's smoothed loss of the blocks' votes (and the kernel's scratch).
     cond : ndarray, shape (n_channels, n_tones)
         Condition number per slot (NaN unused).
     est : ndarray, shape (n_channels, n_tones, N_EST, 2)
@@ -282,7 +293,7 @@ class Observer:
     """
 
     def __init__(self, beam, freqs, fs, block, frontend=None, window=None, image_load=None,
-                 max_cond=MAX_COND, wave=None, hop=None, lstsq=False):
+                 max_cond=MAX_COND, wave=None, hop=None, lstsq=False, image_loads=()):
         f = np.atleast_2d(np.asarray(freqs, dtype=float))
         f = np.where(np.isfinite(f), f, 0.0)
         if np.any(f < 0) or np.any(f >= fs / 2):
@@ -309,22 +320,36 @@ class Observer:
                 raise ModelError(f"{name} = {wc} must be a multiple of hop = {self.hop}")
         self.lstsq = np.broadcast_to(np.asarray(lstsq, dtype=bool), (n_ch,)).copy()
         self.scale = 2.0 / self.windows
+        self.image_loads = [image_load, *image_loads]
+        # without images (an ideal front end) every load reads the same: one candidate
+        loads = self.image_loads if frontend is not None else self.image_loads[:1]
+        self.Hc = np.zeros((n_ch, n_t, len(loads), N_EST, 1 + n_seg, 2))
         self.H = np.zeros((n_ch, n_t, N_EST, 1 + n_seg, 2))
+        self.pick = np.zeros(n_ch, dtype=np.int64)
+        self.resid = np.zeros((n_ch, 2, len(loads)))
         self.cond = np.full((n_ch, n_t), np.nan)
-        # one design per distinct frequency, their images solved in one batch (channels on the
-        # same tones share a design)
-        cache = design_many(beam, [fk for fk in f.ravel().tolist() if fk > 0.0], frontend, image_load=image_load,
-                            max_cond=max_cond)
-        for c in range(n_ch):
-            for k in range(n_t):
-                fk = float(f[c, k])
-                if fk <= 0.0:
-                    continue
-                ob = cache[fk]
-                self.H[c, k, :, :, 0] = ob.H.real
-                self.H[c, k, :, :, 1] = ob.H.imag
-                self.cond[c, k] = ob.cond
-        self.designs = cache
+        # one design per distinct frequency and load, their images solved in one batch (channels
+        # on the same tones share a design)
+        tones = [fk for fk in f.ravel().tolist() if fk > 0.0]
+        for q, load in enumerate(loads):
+            cache = design_many(beam, tones, frontend, image_load=load, max_cond=max_cond)
+            for c in range(n_ch):
+                for k in range(n_t):
+                    fk = float(f[c, k])
+                    if fk <= 0.0:
+                        continue
+                    ob = cache[fk]
+                    self.Hc[c, k, q, :, :, 0] = ob.H.real
+                    self.Hc[c, k, q, :, :, 1] = ob.H.imag
+                    if q == 0:
+                        self.cond[c, k] = ob.cond
+            if q == 0:
+                self.designs = cache
+        # the images enter with the drive: the loads' designs share the currents' columns, which
+        # the load's choice (``_pick_load``) sums once for all of them
+        if not np.array_equal(self.Hc[:, :, :, :, 1:], np.repeat(self.Hc[:, :, :1, :, 1:], len(loads), axis=2)):
+            raise ModelError("observer designs for other image loads differ in the currents' columns")
+        self.H[...] = self.Hc[:, :, 0]
         try:
             self.lock_u = LockIn(n_ch, f, fs, self.windows, hop=self.hop, lstsq=self.lstsq)
             self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, np.repeat(self.windows, n_seg),
@@ -344,8 +369,8 @@ class Observer:
     @property
     def args(self) -> tuple:
         """Kernel arguments: ``observer_process(*args, drive, sensed)``."""
-        return (*self.lock_u.args, *self.lock_i.args, self.u_out, self._back, self.H,
-                self.scale, self.est, self.wave)
+        return (*self.lock_u.args, *self.lock_i.args, self.u_out, self._back, self.H, self.Hc,
+                self.pick, self.resid, self.scale, self.est, self.wave)
 
     def process(self, drive, sensed) -> int:
         """Advance by one block.
@@ -369,9 +394,13 @@ class Observer:
         return observer_process(*self.args, drive, sensed)
 
     def reset(self) -> None:
-        """Empty windows, references at phase 0."""
+        """Empty windows, references at phase 0, every channel back on the first image load."""
         self.lock_u.reset()
         self.lock_i.reset()
+        if self.Hc.shape[2] > 1:
+            self.H[...] = self.Hc[:, :, 0]
+            self.pick[:] = 0
+            self.resid[:] = 0.0
         self.est[:] = 0.0
         self.wave[:] = 0.0
 
@@ -410,7 +439,7 @@ class ObserverRows:
         The observer that computes them.
     first, n_channels : int
         ``c0`` and ``c1 - c0``.
-    freqs, windows, scale, H, cond, est, wave, u_out
+    freqs, windows, scale, H, Hc, pick, resid, cond, est, wave, u_out
         The observer's, rows ``c0:c1`` (``u_out``: the drive's amplitude (peak, V) and phase (rad)
         per tone slot, shape (n_channels, n_tones, 2)).
     window : int
@@ -424,7 +453,7 @@ class ObserverRows:
         self.observer, self.first, self.n_channels = observer, int(c0), int(c1 - c0)
         for name in ("beam", "fs", "block", "frontend", "designs", "n_tones", "n_seg"):
             setattr(self, name, getattr(observer, name))
-        for name in ("freqs", "windows", "scale", "H", "cond", "est", "wave"):
+        for name in ("freqs", "windows", "scale", "H", "Hc", "pick", "resid", "cond", "est", "wave"):
             setattr(self, name, getattr(observer, name)[rows])
         self.u_out = observer.u_out[rows]
         self.u_acc = observer.lock_u.acc
