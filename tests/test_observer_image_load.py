@@ -94,7 +94,7 @@ def _phasor_block_inputs(rng, n_ch, n_t, n_seg, n_q):
 def test_pick_load_against_numpy():
     """The switch rule, written out in numpy: per channel the residual ``sum_k |H_q[moment] .
     [D, S]|^2`` of each candidate; those over the least / ``DECISIVE`` lose the block's vote (1),
-    the others win (0), the losses smoothed by ``block / window`` (no vote when none loses); the
+    the others win (0), the losses smoothed by ``lag`` (no vote when none loses); the
     least smoothed loss takes over when under ``SWITCH`` x the one in use's, its matrices copied
     whole; a silent window (all zero) changes nothing."""
     rng = np.random.default_rng(3)
@@ -107,8 +107,8 @@ def test_pick_load_against_numpy():
             i_acc[:] = 0.0
         pick = rng.integers(0, n_q, n_ch).astype(np.int64)
         H = np.ascontiguousarray(Hc[np.arange(n_ch), :, pick])
-        block = 32
         scale = 2.0 / rng.choice([32, 96, 192, 4800], n_ch)
+        lag = rng.uniform(0.01, 1.0, n_ch)
         resid = np.zeros((n_ch, 2, n_q))
         resid[:, 0] = rng.uniform(0.0, 1.0, (n_ch, n_q)) * (trial % 3 != 0)
         want_pick, want_H, want_resid = pick.copy(), H.copy(), resid.copy()
@@ -123,14 +123,14 @@ def test_pick_load_against_numpy():
                 continue
             if not m.min() < sk.DECISIVE * m.max():
                 continue
-            a = block * scale[c] / 2
+            a = lag[c]
             want_resid[c, 1] = (m.min() < sk.DECISIVE * m).astype(float)
             res = want_resid[c, 0] = resid[c, 0] + a * (want_resid[c, 1] - resid[c, 0])
             best = int(np.argmin(res))
             if best != pick[c] and res[best] < sk.SWITCH * res[pick[c]]:
                 want_pick[c] = best
                 want_H[c] = Hc[c, :, best]
-        sk._pick_load(u_acc, i_acc, H, Hc, pick, resid, scale, block)
+        sk._pick_load(u_acc, i_acc, H, Hc, pick, resid, lag, scale)
         np.testing.assert_allclose(resid, want_resid, rtol=1e-12, atol=0.0)
         assert np.array_equal(pick, want_pick)
         assert np.array_equal(H, want_H)

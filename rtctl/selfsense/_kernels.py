@@ -29,7 +29,8 @@ _LANES = 8
 
 @kernel
 def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring,
-                     i_solve, u_out, back, H, Hc, pick, resid, scale, est, wave, drive, sensed):
+                     i_solve, u_out, back, H, Hc, pick, resid, lag, scale, est, wave, drive,
+                     sensed):
     """One block: demodulate drive and currents, take each channel's image load (:func:`_pick_load`),
     apply the observer, rebuild the tip waveform.
 
@@ -53,6 +54,8 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
         The candidate each channel's ``H`` holds; updated.
     resid : ndarray, shape (n_ch, 2, n_loads)
         Each candidate's smoothed loss of the blocks' votes, and scratch; updated.
+    lag : ndarray, shape (n_ch,)
+        Each channel's smoothing of the votes per block (``Observer.lag``).
     scale : ndarray, shape (n_ch,)
         ``2 / window`` of each channel: lock-in sum to phasor.
     est : ndarray, shape (n_ch, n_tones, n_est, 2)
@@ -72,7 +75,7 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out)
     _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, sensed)
     if Hc.shape[2] > 1:
-        _pick_load(u_acc, i_acc, H, Hc, pick, resid, scale, wave.shape[1])
+        _pick_load(u_acc, i_acc, H, Hc, pick, resid, lag, scale)
     n_ch, n_t, n_est = est.shape[0], est.shape[1], est.shape[2]
     n_seg = H.shape[3] - 1
     status = 0
@@ -106,7 +109,7 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
 
 
 @kernel
-def _pick_load(u_acc, i_acc, H, Hc, pick, resid, scale, block):
+def _pick_load(u_acc, i_acc, H, Hc, pick, resid, lag, scale):
     """Per channel, the candidate load at the images whose observer reads the smaller tip moment.
 
     The aliased images of the drive (2 fs +- f and beyond) see the tip's load at tens of kHz, where
@@ -117,15 +120,15 @@ def _pick_load(u_acc, i_acc, H, Hc, pick, resid, scale, block):
     channel's tones). A block whose least residual is under :data:`DECISIVE` of another's votes:
     every candidate that far above the least loses (``resid[c, 1]`` 1), the rest win (0: the 50 g
     and 200 g sets of a finger pin the tip alike, and neither stands out from the other), and the
-    losses are smoothed over about one window of the channel's votes (``resid[c, 0]``, a
-    first-order lag of ``block / window``). A vote is scale-free: a window straddling a drive step
-    (whose residuals jump 10-100 fold for every candidate alike) weighs no more than any other
-    block; and where noise decides (10 Hz at 10 V, or 250 Hz at 1 V, with 1 uV of sense noise),
-    or a transient that no candidate explains, no candidate stands out and nothing is voted (a
-    choice made there, at a start, stayed: noise cannot undo it). A candidate takes over when its
-    smoothed loss is under :data:`SWITCH` of the one in use's; a silent or non-finite window
-    changes nothing. The candidates' matrices differ in the drive's column alone (the images
-    enter with the drive; :class:`~rtctl.selfsense.rt.Observer` checks it).
+    losses are smoothed (``resid[c, 0]``, a first-order lag ``lag[c]`` per block: over half the
+    channel's window, at least ``rt.LOAD_LAG_S``). A vote is scale-free: a window straddling a
+    drive step (whose residuals jump 10-100 fold for every candidate alike) weighs no more than
+    any other block; and where noise decides (10 Hz at 10 V, or 250 Hz at 1 V, with 1 uV of sense
+    noise), or a transient that no candidate explains, no candidate stands out and nothing is
+    voted. A candidate takes over when its smoothed loss is under :data:`SWITCH` of the one in
+    use's; a silent or non-finite window changes nothing. The candidates' matrices differ in the
+    drive's column alone (the images enter with the drive; :class:`~rtctl.selfsense.rt.Observer`
+    checks it).
     """
     n_ch, n_t = H.shape[0], H.shape[1]
     n_seg = H.shape[3] - 1
@@ -171,7 +174,7 @@ def _pick_load(u_acc, i_acc, H, Hc, pick, resid, scale, block):
         least = resid[c, 1, win]
         if not least < DECISIVE * worst:
             continue                               # no candidate stands out: no vote
-        a = min(1.0, 0.5 * block * sc)             # block / window
+        a = lag[c]
         for q in range(n_q):
             resid[c, 1, q] = 1.0 if least < DECISIVE * resid[c, 1, q] else 0.0
             resid[c, 0, q] += a * (resid[c, 1, q] - resid[c, 0, q])

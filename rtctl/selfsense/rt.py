@@ -126,6 +126,11 @@ SHORTEN = 2
 #: of both: under a finger whose slow branch still drifts, -3.8 % left at the end of a 1 s segment
 #: and 750 ms to come within 5 %, against within 1.2 % and 250-450 ms; bench/control_sweep.py)
 LONG_WINDOW_S = 0.05
+#: The observer's choice of the load at the drive's images (``_kernels._pick_load``) smooths its
+#: votes over half a channel's window, but not over less than this (s): a short window's votes are
+#: noise-bound on a weak tone (250 Hz at 1 V, a window of 4 ms: over 2 ms its choice followed the
+#: noise, and a start read 2.0 % off; over 25 ms, 0.8 %)
+LOAD_LAG_S = 0.025
 #: nor does it make the lock-ins' hop shorter than this (each hop costs the ring update once more
 #: per block for every slot of the group): a window of whole periods that would need it is read by
 #: least squares on the block grid instead (48000 / 601 Hz: 608 samples, not 601 with a hop of 1)
@@ -269,6 +274,9 @@ class Observer:
         The candidate each channel's ``H`` holds.
     resid : ndarray, shape (n_channels, 2, n_loads)
         Each candidate's smoothed loss of the blocks' votes (and the kernel's scratch).
+    lag : ndarray, shape (n_channels,)
+        The votes' smoothing per block: ``block`` over half the channel's window, or over
+        :data:`LOAD_LAG_S`, whichever is longer.
     cond : ndarray, shape (n_channels, n_tones)
         Condition number per slot (NaN unused).
     est : ndarray, shape (n_channels, n_tones, N_EST, 2)
@@ -327,6 +335,7 @@ class Observer:
         self.H = np.zeros((n_ch, n_t, N_EST, 1 + n_seg, 2))
         self.pick = np.zeros(n_ch, dtype=np.int64)
         self.resid = np.zeros((n_ch, 2, len(loads)))
+        self.lag = np.minimum(1.0, self.block / np.maximum(0.5 * self.windows, LOAD_LAG_S * self.fs))
         self.cond = np.full((n_ch, n_t), np.nan)
         # one design per distinct frequency and load, their images solved in one batch (channels
         # on the same tones share a design)
@@ -370,7 +379,7 @@ class Observer:
     def args(self) -> tuple:
         """Kernel arguments: ``observer_process(*args, drive, sensed)``."""
         return (*self.lock_u.args, *self.lock_i.args, self.u_out, self._back, self.H, self.Hc,
-                self.pick, self.resid, self.scale, self.est, self.wave)
+                self.pick, self.resid, self.lag, self.scale, self.est, self.wave)
 
     def process(self, drive, sensed) -> int:
         """Advance by one block.
@@ -439,7 +448,7 @@ class ObserverRows:
         The observer that computes them.
     first, n_channels : int
         ``c0`` and ``c1 - c0``.
-    freqs, windows, scale, H, Hc, pick, resid, cond, est, wave, u_out
+    freqs, windows, scale, H, Hc, pick, resid, lag, cond, est, wave, u_out
         The observer's, rows ``c0:c1`` (``u_out``: the drive's amplitude (peak, V) and phase (rad)
         per tone slot, shape (n_channels, n_tones, 2)).
     window : int
@@ -453,7 +462,7 @@ class ObserverRows:
         self.observer, self.first, self.n_channels = observer, int(c0), int(c1 - c0)
         for name in ("beam", "fs", "block", "frontend", "designs", "n_tones", "n_seg"):
             setattr(self, name, getattr(observer, name))
-        for name in ("freqs", "windows", "scale", "H", "Hc", "pick", "resid", "cond", "est", "wave"):
+        for name in ("freqs", "windows", "scale", "H", "Hc", "pick", "resid", "lag", "cond", "est", "wave"):
             setattr(self, name, getattr(observer, name)[rows])
         self.u_out = observer.u_out[rows]
         self.u_acc = observer.lock_u.acc
