@@ -119,7 +119,7 @@ def _pick_load(u_acc, i_acc, H, Hc, pick, resid, lag, scale):
     tip, so the tip moment a candidate's observer reads is its residual (squared, summed over the
     channel's tones). A block whose least residual is under :data:`DECISIVE` of another's votes:
     every candidate that far above the least loses (``resid[c, 1]`` 1), the rest win (0: the 50 g
-    and 200 g sets of a finger pin the tip alike, and neither stands out from the other), and the
+    and 200 g sets of a finger pin the tip nearly alike, and often neither stands out), and the
     losses are smoothed (``resid[c, 0]``, a first-order lag ``lag[c]`` per block: over half the
     channel's window, at least ``rt.LOAD_LAG_S``). A vote is scale-free: a window straddling a
     drive step (whose residuals jump 10-100 fold for every candidate alike) weighs no more than
