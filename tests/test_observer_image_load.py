@@ -159,3 +159,22 @@ def test_the_observer_follows_the_finger_off_and_back_on(tmp_path, monkeypatch):
           f"lifted through the finger's images {np.round(fixed, 3)}")
     assert np.all(np.abs(lifted) < 0.3) and np.all(np.abs(landed) < 0.3)
     assert np.max(np.abs(fixed)) > 1.5
+
+
+def test_the_summary_says_which_load_the_observer_ended_on(tmp_path):
+    """Closed loop on the elastic root (``line-bimorph-5-closed``: 50 g, 200 g at 0.8 s, lifted at
+    1.4 s): a controlled channel's ``observer_load`` is the 50 g set's at 0.7 s, the 200 g set's at
+    1.3 s and ``lifted`` at 1.75 s (40 and 120 Hz: the 250 Hz channel's 1 V leaves its residual
+    noise-bound)."""
+    events = ['{at=0.8,set={"finger.preload"=1.96}}', '{at=1.4,set={"finger.contact"=false}}']
+
+    def loads(seconds):
+        passed = [e for e, at in zip(events, (0.8, 1.4)) if at < seconds]
+        sc = scene.load("line-bimorph-5-closed", [*ELASTIC, f"timing.duration={seconds}",
+                                                  f"events=[{','.join(passed)}]"])
+        rows = run(sc, out_dir=tmp_path / str(seconds), plot=False).summary["channels"]
+        return [rows[c]["observer_load"] for c in (2, 3)]
+
+    assert loads(0.7) == ["0.1 g of skin, k0 300 N/m"] * 2
+    assert loads(1.3) == ["0.2 g of skin, k0 750 N/m"] * 2
+    assert loads(1.75) == ["lifted"] * 2

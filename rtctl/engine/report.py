@@ -246,6 +246,10 @@ def _control(rig, rows) -> None:
             freqs = st.observer.freqs[ctl.index[OBS_CH, j]]
             gain = max(st.observer.designs[float(f)].gain for f in freqs if f > 0.0)
             row["observer_gain"] = gain
+            # the load the observer took the drive's images to see at the end (its tip-moment
+            # residual's choice among the finger lifted and the finger's sets)
+            load = st.observer.image_loads[int(st.observer.pick[ctl.index[OBS_CH, j]])]
+            row["observer_load"] = "lifted" if load is None else f"{load.mass * 1e3:g} g of skin, k0 {load.k0:g} N/m"
             row["uncertainty_pct"] = (rig.calibration.tone_uncertainty_pct(row["group"], gain)
                                       if rig.calibration else None)
             sat = bool(ctl.state[SAT, j])

@@ -460,7 +460,7 @@ class ObserverRows:
             raise ModelError(f"rows {c0}:{c1} of an observer of {observer.n_channels} channels")
         rows = slice(c0, c1)
         self.observer, self.first, self.n_channels = observer, int(c0), int(c1 - c0)
-        for name in ("beam", "fs", "block", "frontend", "designs", "n_tones", "n_seg"):
+        for name in ("beam", "fs", "block", "frontend", "designs", "n_tones", "n_seg", "image_loads"):
             setattr(self, name, getattr(observer, name))
         for name in ("freqs", "windows", "scale", "H", "Hc", "pick", "resid", "lag", "cond", "est", "wave"):
             setattr(self, name, getattr(observer, name)[rows])
