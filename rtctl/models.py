@@ -235,16 +235,18 @@ class Models:
     def finger(self, group):
         """The finger on ``group``'s tips (:func:`finger_load`), or None without contact."""
         def build():
-            from .plant.finger import MaxwellLoad
-
             load = finger_load(self.scene, group)
-            f = lambda k: self._factor(k, group)  # noqa: E731
-            if load is None:
-                return None
-            return MaxwellLoad(load.mass * f("finger_mass"), load.k0 * f("finger_k0"),
-                               tuple((k * f("finger_branches"), tau) for k, tau in load.branches))
+            return None if load is None else self._factored(load, group)
 
         return self._get(("finger", group.name), build)
+
+    def _factored(self, load, group):
+        """``load`` (a MaxwellLoad) under the finger factors of ``group``."""
+        from .plant.finger import MaxwellLoad
+
+        f = lambda k: self._factor(k, group)  # noqa: E731
+        return MaxwellLoad(load.mass * f("finger_mass"), load.k0 * f("finger_k0"),
+                           tuple((k * f("finger_branches"), tau) for k, tau in load.branches))
 
     def beam(self, group):
         """The finite-element beam of a bimorph group (no finger). A ``support.type = "actuator"``
@@ -408,18 +410,14 @@ class Models:
         aliased images see the tip's load at tens of kHz; :class:`~rtctl.selfsense.rt.Observer`)."""
         from .plant.finger import MaxwellLoad
 
-        f = lambda k: self._factor(k, group)  # noqa: E731
         first = self.finger(group)
         fi = self.scene.finger
         sets = [s for s in fi.subjects if s.name == fi.subject and s.direction == group.direction] if fi.subject else []
+        if first is None and not sets:
+            sets = [fi[group.direction]]
         out = [] if first is None else [None]
         for s in sets:
-            load = MaxwellLoad(s.mass * f("finger_mass"), s.k0 * f("finger_k0"),
-                               tuple((b.k * f("finger_branches"), b.tau) for b in s.branches))
+            load = self._factored(MaxwellLoad(s.mass, s.k0, tuple((b.k, b.tau) for b in s.branches)), group)
             if load != first and load not in out:
                 out.append(load)
-        if first is None and not sets:
-            table = fi[group.direction]
-            out.append(MaxwellLoad(table.mass * f("finger_mass"), table.k0 * f("finger_k0"),
-                                   tuple((b.k * f("finger_branches"), b.tau) for b in table.branches)))
         return out
