@@ -9,8 +9,9 @@ import numpy as np
 from rtctl._numba import TINY
 
 
-def pvdf_group(args, drive, n_sensed):
-    """Run the PVDF group's recursion over ``drive`` (n_channels, n).
+def pvdf_group(group, drive, n_sensed):
+    """Run the PVDF group's recursion over ``drive`` (n_channels, n), from the group's model
+    matrices (``Q``, ``C``, ``Rd``, ``Rq``) and its discrete blocks, states and constants.
 
     Returns
     -------
@@ -20,8 +21,8 @@ def pvdf_group(args, drive, n_sensed):
     states : tuple of ndarray
         Final ``Z, G, V``.
     """
-    (sizes, zi, pi, L, Gg, Gp, Q, C, ranges, consts, Rd, Rq, Z, G, V,
-     _P, _E, _VV, _YY, _YD, _probe) = args
+    sizes, zi, pi, L, Gg, Gp, consts, Z, G, V = group.args[:10]
+    Q, C, Rd, Rq = group.Q, group.C, group.Rd, group.Rq
     Z, G, V = Z.copy(), G.copy(), V.copy()
     nc, n = drive.shape
     fch = int(sizes[1])

@@ -306,7 +306,7 @@ def _group_events(models, g, group):
                                             for i, v in value.items()})
     if g.type == "pvdf" and initial is not None:
         # the finger's static force only offsets the plate's force output (its kernel's consts[1])
-        consts = group.args[9].reshape(1, -1)
+        consts = group.consts.reshape(1, -1)
         value = {e.index: float(e.scene_after.finger.preload) for e in events}
         if all(v == consts[0, 1] for v in value.values()):
             return None

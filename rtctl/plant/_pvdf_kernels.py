@@ -10,11 +10,15 @@ group is one MIMO system; per sample and per modal block ``b`` (2 states for a c
     (v, y, y') <- R (v, y, y') + r u               per cell: amplifier, residual mode
     y      = C [z; g] + Rd [y; y']                 modes + residual of the truncated ones
 
-The projections are formed and the outputs evaluated for a whole chunk at a time (loops over
-time innermost: contiguous, vectorized); only the small block recursion runs sample by sample.
-Inner loops index their arrays rather than slicing them: every slice is a view whose reference
-count numba raises and drops atomically, and one per (row, column) pair cost more than the
-products (the residual pair: 118 -> 76 us per 48-cell block, bitwise the same samples).
+The projections are formed and the outputs evaluated for a whole chunk at a time; only the
+small recursions run sample by sample. Both products are one matrix each over the chunk's
+*sources* ``X`` (rows: ``e = [z; g]`` before each sample, then per cell ``v``, ``y``, ``y'``,
+``u - v``, ``v - y`` and ``u``), run as tiles of up to 3 rows by 8 sources with time innermost
+(:func:`rtctl.plant._kernels.lti_outputs`): each source value loaded serves 3 rows, where a
+row-by-row ``out += w * x`` loads and stores its row once per multiply-add. The differences
+``u - v`` and ``v - y`` are sources of their own so that the cell current's ``C_f w_a (u - v)``
+and the residual acceleration ``w_r^2 (v - y)`` are not formed from two large products that
+cancel.
 """
 
 from __future__ import annotations
@@ -22,33 +26,17 @@ from __future__ import annotations
 import math
 
 from rtctl._numba import TINY, kernel
+from rtctl.plant._kernels import lti_outputs
 
 STATUS_OK = 0
 STATUS_NONFINITE = 2
 
-# Column ranges of C (``ranges`` rows): which states each output group reads. Outside a
-# range the coefficients are exact zeros, so the loops skip them.
-R_DISP, R_VEL, R_CUR, R_FORCE, R_PROBE = 0, 1, 2, 3, 4
-
-
-@kernel
-def _project(Q, drive, start, nb, P):
-    """``P[i, :nb] = sum_j Q[i, j] drive[j, start:start + nb]`` (time innermost)."""
-    n_p, n_ch = Q.shape
-    for i in range(n_p):
-        for t in range(nb):
-            P[i, t] = 0.0
-        for j in range(n_ch):
-            q = Q[i, j]
-            if q != 0.0:
-                for t in range(nb):
-                    P[i, t] += q * drive[j, start + t]
-
 
 @kernel
 def _recurse(zi, pi, L, Gg, Gp, alpha, Z, G, P, E, nb):
-    """Block recursion over ``nb`` samples; ``E[:, t]`` gets the states *before* sample t."""
-    n_z = E.shape[0] - (G.shape[0] - 1)
+    """Block recursion over ``nb`` samples; ``E[:n_z + n_p, t]`` gets the states ``[z; g]``
+    *before* sample t (``n_z``, ``n_p``: the lengths of ``Z`` and ``G`` less their dummies)."""
+    n_z = Z.shape[0] - 1
     n_p = G.shape[0] - 1
     n_blocks = zi.shape[0]
     beta = 1.0 - alpha
@@ -90,81 +78,37 @@ def _recurse(zi, pi, L, Gg, Gp, alpha, Z, G, P, E, nb):
 
 
 @kernel
-def _rows(C, r0, c0, c1, E, nb, out):
-    """``out[:nb] = C[r0, c0:c1] @ E[c0:c1, :nb]`` (a row of outputs over a chunk)."""
-    for t in range(nb):
-        out[t] = 0.0
-    for c in range(c0, c1):
-        w = C[r0, c]
-        if w != 0.0:
-            for t in range(nb):
-                out[t] += w * E[c, t]
-
-
-@kernel
-def _rows_add(R, r0, X, nb, out):
-    """``out[:nb] += R[r0] @ X[:, :nb]`` (residual terms; time innermost)."""
-    for c in range(R.shape[1]):
-        w = R[r0, c]
-        if w != 0.0:
-            for t in range(nb):
-                out[t] += w * X[c, t]
-
-
-@kernel
-def _rows_add_pair(R, r0, X1, X2, nb, out1, out2):
-    """``out1[:nb] += R[r0] @ X1[:, :nb]`` and ``out2[:nb] += R[r0] @ X2[:, :nb]`` (the residual
-    displacement and velocity share their weights; sums in the order of :func:`_rows_add`).
-
-    The sources are indexed, not sliced: a slice is an array view whose reference count is
-    raised and dropped (atomically) each time, and 48 x 48 views per block cost more than the
-    arithmetic they serve.
-    """
-    for c in range(R.shape[1]):
-        w = R[r0, c]
-        if w != 0.0:
-            for t in range(nb):
-                out1[t] += w * X1[c, t]
-                out2[t] += w * X2[c, t]
-
-
-@kernel
-def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, Q, C, ranges, consts, Rd, Rq, Z, G, V, P, E,
-                       VV, YY, YD, probe, drive, sensed, truth):
+def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, oplan, ocoef,
+                       zeros, P, X, ys, probe, drive, sensed, truth):
     """Advance one plate with all its PVDF cells by one block (``PvdfGroup``'s kernel).
 
     Parameters
     ----------
-    sizes : ndarray of int64, shape (5,)
-        ``(max_block, finger_channel (-1: none), n_sensed (0 or 1), n_probe, residual (0/1))``.
+    sizes : ndarray of int64, shape (6,)
+        ``(max_block, finger_channel (-1: none), n_sensed (0 or 1), n_probe, residual (0/1: the
+        truncated modes' terms are in the tiles or not; not read here), n_e)``.
     zi, pi : ndarray of int64, shape (n_blocks, 2)
         State and projection indices of each modal block (dummy ``n_z`` / ``n_p`` pads).
     L, Gg, Gp : ndarray, shape (n_blocks, 2, 2)
         Discrete block coefficients (state, amplifier-state and held-input parts).
-    Q : ndarray, shape (n_p, n_channels)
-        Input projections, per volt.
-    C : ndarray, shape (3 n_channels + 1 + n_probe, n_z + n_p)
-        Output rows: cell displacement (m), cell velocity (m/s), cell current from the plate's
-        motion (A), tissue force at the finger (N), probes (displacement, velocity,
-        acceleration).
-    ranges : ndarray of int64, shape (5, 2)
-        Column range read by each row group (``R_DISP .. R_PROBE``).
     consts : ndarray, shape (17,)
         ``(alpha, preload_n, cf_wa, w_r^2, 2 zeta_r w_r, R[3, 3] row-major, r[3])``: amplifier
         pole per sample, static finger force, film capacitance times the amplifier corner
         (A per V of ``u - v``), the residual mode's coefficients, and the exact ZOH recursion
         of each cell's ``(v, y, y')`` (amplifier, then residual mode): ``x <- R x + r u``.
-    Rd : ndarray, shape (n_channels + 1, n_channels)
-        Static displacement of the truncated modes at the cell centres and at the probe per
-        cell volt (m/V), applied to the residual-mode outputs ``y, y', y''``.
-    Rq : ndarray, shape (n_channels, n_channels)
-        Truncated modes' share of the cell capacitances (F); currents get ``Rq y'``.
     Z, G, V : ndarray, shapes (n_z + 1,), (n_p + 1,), (n_channels, 3)
         States: modal, amplified projections (last entries of Z, G: dummies), and per cell
         ``(v, y, y')``: voltage and residual mode.
-    P, E, VV, YY, YD : ndarray
-        Scratch, shapes (n_p + 1, max_block) (last row must stay zero), (n_z + n_p,
-        max_block), (n_channels, max_block) three times (trajectories of v, y, y').
+    qplan, qcoef, oplan, ocoef : ndarray
+        Tiles (:func:`rtctl.plant._kernels.output_plan`) of the input projections ``P = Q u``
+        and of every output row over the sources ``X`` (``ys``: cell displacement, velocity
+        and current, force on the finger, probes): ``PvdfGroup.Q`` and ``PvdfGroup.W``.
+    zeros : ndarray
+        At least ``max(3 n_channels + 1 + n_probe, n_p + 1, max_block)`` zeros (the tiles'
+        feedthrough and its input).
+    P, X, ys : ndarray
+        Scratch, shapes ``(n_p + 1, >= max_block)``, ``(n_e + 6 n_channels, >= max_block)``,
+        ``(3 n_channels + 1 + n_probe, >= max_block)``.
     probe : ndarray, shape (n_probe, max_block)
         Written: the probe signals of the last chunk (``probe[:, :nb]``).
     drive : ndarray, shape (n_channels, n)
@@ -183,34 +127,37 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, Q, C, ranges, consts, Rd, Rq, Z
     fch = sizes[1]
     n_sensed = sizes[2]
     n_probe = sizes[3]
-    residual = sizes[4]
+    n_e = sizes[5]
     nc, n = drive.shape
     alpha = consts[0]
     preload = consts[1]
-    cf_wa = consts[2]
-    wr2 = consts[3]
-    cr = consts[4]
     r00, r01, r02 = consts[5], consts[6], consts[7]
     r10, r11, r12 = consts[8], consts[9], consts[10]
     r20, r21, r22 = consts[11], consts[12], consts[13]
     b0, b1, b2 = consts[14], consts[15], consts[16]
+    x_v = n_e
+    x_y = n_e + nc
+    x_yd = n_e + 2 * nc
+    x_uv = n_e + 3 * nc
+    x_vy = n_e + 4 * nc
+    x_u = n_e + 5 * nc
     for start in range(0, n, blk):
         nb = min(blk, n - start)
-        _project(Q, drive, start, nb, P)
-        _recurse(zi, pi, L, Gg, Gp, alpha, Z, G, P, E, nb)
         for j in range(nc):
-            u = drive[j, start:start + nb]
-            vv = VV[j, :nb]
-            yy = YY[j, :nb]
-            yd = YD[j, :nb]
+            _copy(drive, j, start, X, x_u + j, 0, nb)
+        lti_outputs(qplan, qcoef, zeros, X, zeros, 0, P, nb)
+        _recurse(zi, pi, L, Gg, Gp, alpha, Z, G, P, X, nb)
+        for j in range(nc):
             v = V[j, 0]
             y = V[j, 1]
             w = V[j, 2]
             for t in range(nb):
-                vv[t] = v
-                yy[t] = y
-                yd[t] = w
-                ut = u[t]
+                ut = X[x_u + j, t]
+                X[x_v + j, t] = v
+                X[x_y + j, t] = y
+                X[x_yd + j, t] = w
+                X[x_uv + j, t] = ut - v
+                X[x_vy + j, t] = v - y
                 nv = r00 * v + r01 * y + r02 * w + b0 * ut
                 ny = r10 * v + r11 * y + r12 * w + b1 * ut
                 nw = r20 * v + r21 * y + r22 * w + b2 * ut
@@ -220,46 +167,24 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, Q, C, ranges, consts, Rd, Rq, Z
             V[j, 0] = v if abs(v) >= TINY else 0.0
             V[j, 1] = y if abs(y) >= TINY else 0.0
             V[j, 2] = w if abs(w) >= TINY else 0.0
+        lti_outputs(oplan, ocoef, zeros, X, zeros, 0, ys, nb)
         for j in range(nc):
-            disp = truth[j, 0, start:start + nb]
-            vel = truth[j, 1, start:start + nb]
-            _rows(C, j, ranges[R_DISP, 0], ranges[R_DISP, 1], E, nb, disp)
-            _rows(C, nc + j, ranges[R_VEL, 0], ranges[R_VEL, 1], E, nb, vel)
-            if residual:
-                _rows_add_pair(Rd, j, YY, YD, nb, disp, vel)
-            force = truth[j, 2, start:start + nb]
+            for t in range(nb):
+                truth[j, 0, start + t] = ys[j, t]
+            for t in range(nb):
+                truth[j, 1, start + t] = ys[nc + j, t]
             if j == fch:
-                _rows(C, 3 * nc, ranges[R_FORCE, 0], ranges[R_FORCE, 1], E, nb, force)
                 for t in range(nb):
-                    force[t] += preload
+                    truth[j, 2, start + t] = ys[3 * nc, t] + preload
             else:
                 for t in range(nb):
-                    force[t] = 0.0
-            volt = truth[j, 3, start:start + nb]
-            vv = VV[j, :nb]
+                    truth[j, 2, start + t] = 0.0
             for t in range(nb):
-                volt[t] = vv[t]
+                truth[j, 3, start + t] = X[x_v + j, t]
             if n_sensed == 1:
-                cur = sensed[j, start:start + nb]
-                _rows(C, 2 * nc + j, ranges[R_CUR, 0], ranges[R_CUR, 1], E, nb, cur)
-                u = drive[j, start:start + nb]
-                for t in range(nb):
-                    cur[t] += cf_wa * (u[t] - vv[t])
-                if residual:
-                    _rows_add(Rq, j, YD, nb, cur)
+                _copy(ys, 2 * nc + j, 0, sensed, j, start, nb)
         for i in range(n_probe):
-            _rows(C, 3 * nc + 1 + i, ranges[R_PROBE, 0], ranges[R_PROBE, 1], E, nb,
-                  probe[i, :nb])
-        if residual:
-            _rows_add_pair(Rd, nc, YY, YD, nb, probe[0, :nb], probe[1, :nb])
-            acc = probe[2, :nb]
-            for c in range(nc):
-                w = Rd[nc, c]
-                vv = VV[c, :nb]
-                yy = YY[c, :nb]
-                yd = YD[c, :nb]
-                for t in range(nb):
-                    acc[t] += w * (wr2 * (vv[t] - yy[t]) - cr * yd[t])
+            _copy(ys, 3 * nc + 1 + i, 0, probe, i, 0, nb)
     bad = False
     for c in range(Z.shape[0]):
         if not math.isfinite(Z[c]):
@@ -272,3 +197,10 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, Q, C, ranges, consts, Rd, Rq, Z
             if not math.isfinite(V[j, c]):
                 bad = True
     return STATUS_NONFINITE if bad else STATUS_OK
+
+
+@kernel
+def _copy(src, row, s0, dst, drow, d0, nb):
+    """``dst[drow, d0:d0 + nb] = src[row, s0:s0 + nb]``."""
+    for t in range(nb):
+        dst[drow, d0 + t] = src[row, s0 + t]

@@ -39,6 +39,7 @@ import numpy as np
 from rtctl.errors import ModelError
 from rtctl.plant import _pvdf_kernels as _k
 from rtctl.plant._checks import positive
+from rtctl.plant._kernels import aligned_zeros, output_plan
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.lti import StateSpace, c2d, to_modal
 from rtctl.plant.materials import EPS0
@@ -53,7 +54,7 @@ PROBE_NAMES = (("probe_displacement", "m"), ("probe_velocity", "m/s"),
 #: truth) -> int``.
 pvdf_group_process = _k.pvdf_group_process
 
-_Z, _G, _V = 12, 13, 14  # positions of the states in PvdfGroup.args
+_Z, _G, _V = 7, 8, 9  # positions of the states in PvdfGroup.args
 
 
 def _pos(name, value):
@@ -589,14 +590,6 @@ class PvdfGroup:
         Cout[acc, :n_z] = cvel @ lam_c
         for p0, rank, blk, Vr in vr_cols:
             Cout[acc, n_z + p0:n_z + p0 + rank] = cvel[list(blk)] @ Vr
-        # Structural zeros: each row group reads one column range.
-        ranges = np.zeros((5, 2), dtype=np.int64)
-        groups = ((0, nc), (nc, 2 * nc), (2 * nc, 3 * nc), (3 * nc, 3 * nc + 1),
-                  (3 * nc + 1, 3 * nc + 4))
-        for g, (r0, r1) in enumerate(groups):
-            cols = np.flatnonzero(np.any(Cout[r0:r1] != 0.0, axis=0))
-            ranges[g] = (cols[0], cols[-1] + 1) if cols.size else (0, 0)
-
         # Per cell: amplifier, then the residual mode driven by its voltage (exact ZOH).
         wr = plant.residual_omega
         A3 = np.array([[-wa, 0.0, 0.0], [0.0, 0.0, 1.0],
@@ -611,27 +604,64 @@ class PvdfGroup:
         self.kernel = pvdf_group_process
         self.T = T
         self.probe = np.zeros((len(PROBE_NAMES), mb))
+        residual = bool(np.any(plant.residual_disp))
+        consts = np.concatenate([[alpha, plant.preload, plant.capacitance * wa, wr**2,
+                                  2 * plant.residual_zeta * wr], cell.A.ravel(), cell.B[:, 0]])
+        #: The model's matrices (what the kernel's tiles are built from): input projections
+        #: (per volt), output rows over [z; g], the truncated modes' static displacement at the
+        #: cells and the probe (m/V) and share of the cell capacitances (F).
+        self.Q, self.C = np.ascontiguousarray(Q), Cout
+        self.Rd, self.Rq = plant.residual_disp, plant.residual_capacitance
+        #: Every output row (as ``C``'s) over the kernel's sources ``[e; v; y; y'; u - v; v - y; u]``.
+        self.W = self._outputs(n_e, nc, consts, residual, plant.finger_channel)
+        n_out, n_src = self.W.shape
+        active = [r for r in range(n_out) if np.any(self.W[r] != 0.0)] or [0]
+        oplan, ocoef = output_plan(self.W[active])
+        oplan[:, 1:4] = np.asarray(active)[oplan[:, 1:4]]
+        qplan, qcoef = output_plan(self.Q)
+        qplan[:, 5:] += n_e + 5 * nc          # the drive's rows of the sources
+        self.consts = consts
         self.args = (
-            np.array([mb, plant.finger_channel, self.n_sensed, len(PROBE_NAMES),
-                      int(bool(np.any(plant.residual_disp)))], dtype=np.int64),
-            zi, pi, L, Gg, Gp,
-            np.ascontiguousarray(Q),
-            np.ascontiguousarray(Cout),
-            ranges,
-            np.concatenate([[alpha, plant.preload, plant.capacitance * wa, wr**2,
-                             2 * plant.residual_zeta * wr], cell.A.ravel(), cell.B[:, 0]]),
-            np.ascontiguousarray(plant.residual_disp),
-            np.ascontiguousarray(plant.residual_capacitance),
+            np.array([mb, plant.finger_channel, self.n_sensed, len(PROBE_NAMES), int(residual),
+                      n_e], dtype=np.int64),
+            zi, pi, L, Gg, Gp, consts,
             np.zeros(n_z + 1),            # Z: modal states (+ dummy)
             np.zeros(n_p + 1),            # G: amplified projections (+ dummy)
             np.zeros((nc, 3)),            # V: per cell voltage and residual mode (v, y, y')
-            np.zeros((n_p + 1, mb)),      # P: projections of a chunk (last row stays 0)
-            np.zeros((n_e, mb)),          # E: states before each sample of a chunk
-            np.zeros((nc, mb)),           # VV, YY, YD: trajectories of v, y, y' in a chunk
-            np.zeros((nc, mb)),
-            np.zeros((nc, mb)),
+            qplan, qcoef, oplan, ocoef,
+            np.zeros(max(n_out, n_p + 1, mb)),
+            aligned_zeros((n_p + 1, mb)),  # P: projections of a chunk (last row stays 0)
+            aligned_zeros((n_src, mb)),    # X: the sources of a chunk
+            aligned_zeros((n_out, mb)),    # ys: the outputs of a chunk
             self.probe,
         )
+
+    def _outputs(self, n_e, nc, consts, residual, finger):
+        """The output matrix over the sources (see :attr:`W`): rows of ``C`` for what is
+        written (the currents only when sensed, the force only with a finger), the residual
+        terms, and the currents' amplifier term."""
+        C, Rd, Rq = self.C, self.Rd, self.Rq
+        cf_wa, wr2, cr = consts[2], consts[3], consts[4]
+        v, y, yd, uv, vy = (n_e + k * nc for k in range(5))
+        W = np.zeros((C.shape[0], n_e + 6 * nc))
+        W[:, :n_e] = C
+        cells = np.arange(nc)
+        if self.currents:
+            W[2 * nc + cells, uv + cells] = cf_wa
+        else:
+            W[2 * nc:3 * nc] = 0.0
+        if finger < 0:
+            W[3 * nc] = 0.0
+        if residual:
+            W[:nc, y:y + nc] = Rd[:nc]
+            W[nc:2 * nc, yd:yd + nc] = Rd[:nc]
+            if self.currents:
+                W[2 * nc:3 * nc, yd:yd + nc] = Rq
+            W[3 * nc + 1, y:y + nc] = Rd[nc]
+            W[3 * nc + 2, yd:yd + nc] = Rd[nc]
+            W[3 * nc + 3, vy:vy + nc] = wr2 * Rd[nc]
+            W[3 * nc + 3, yd:yd + nc] = -cr * Rd[nc]
+        return W
 
     def physical_state(self) -> np.ndarray:
         """State in ``plant.sys`` coordinates ``[v, y, y', eta, eta', f]``, a copy."""
