@@ -121,13 +121,15 @@ def without_xruns(attempt, blocks=BLOCKS):
     pytest.skip(f"xruns in every try ({'; '.join(seen)}): this machine's scheduling, the run is not judged")
 
 
-def device_tip(run_dir, truth_dir, n: int, block: int, offset=False) -> np.ndarray:
-    """The emulator's true tip (um) at each of the run's first ``n`` samples, ``(channels, n)``;
-    NaN for samples that went out before the emulator connected. With ``offset``, also the
-    emulator's period that received the run's block 0 (negative: connected after it).
+def emulator_alignment(run_dir, truth_dir, block: int) -> dict:
+    """Where the emulator's record of the drive sits against the run's trace, and whether it heard
+    every block: ``k0`` the run's blocks that went out before the emulator connected, ``off`` the
+    emulator's period that received the run's block 0 (negative: connected after it), ``last``
+    the run's last driven block, and ``same``: the drive agrees sample for sample over everything
+    both hold (False: a period lost or repeated between them, a glitch neither xrun count saw).
 
     The emulator's record and the run's trace are aligned on their last driven block (the run's
-    final fade), then the drive must agree sample for sample over everything both hold."""
+    final fade)."""
     from rtctl.trace import TraceReader
 
     run, dev = TraceReader(run_dir / "trace"), TraceReader(truth_dir)
@@ -141,15 +143,27 @@ def device_tip(run_dir, truth_dir, n: int, block: int, offset=False) -> np.ndarr
         return np.flatnonzero(np.any(d.reshape(d.shape[0], -1, block) != 0, axis=(0, 2)))
 
     last = driven(rd)[-1]
-    assert last * block >= n - block, (last, n)  # the run drove to its end (its fade follows)
     off = driven(dd)[-1] - last
-    k0 = max(0, -off)  # the run's blocks that went out before the emulator was connected
-    assert k0 < 50, f"the emulator connected {k0} blocks into the run"
+    k0 = max(0, -off)
     # float32 through JACK and the traces: a few ulp, far below any glitch of a lost period
-    np.testing.assert_allclose(dd[:, (k0 + off) * block:(last + 1 + off) * block],
-                               rd[:, k0 * block:(last + 1) * block], rtol=1e-6, atol=1e-6)
+    same = bool(np.allclose(dd[:, (k0 + off) * block:(last + 1 + off) * block],
+                            rd[:, k0 * block:(last + 1) * block], rtol=1e-6, atol=1e-6))
+    return dict(k0=k0, off=off, last=last, same=same, run=run, dev=dev)
+
+
+def device_tip(run_dir, truth_dir, n: int, block: int, offset=False) -> np.ndarray:
+    """The emulator's true tip (um) at each of the run's first ``n`` samples, ``(channels, n)``;
+    NaN for samples that went out before the emulator connected. With ``offset``, also the
+    emulator's period that received the run's block 0 (negative: connected after it).
+    The drive must agree sample for sample over everything both hold (:func:`emulator_alignment`)."""
+    a = emulator_alignment(run_dir, truth_dir, block)
+    k0, off, last = a["k0"], a["off"], a["last"]
+    assert last * block >= n - block, (last, n)  # the run drove to its end (its fade follows)
+    assert k0 < 50, f"the emulator connected {k0} blocks into the run"
+    assert a["same"], "the emulator's drive differs from the run's: a period lost or repeated between them"
+    rd = a["run"].signal("drive")
     tip = np.full((rd.shape[0], n), np.nan)
-    tip[:, k0 * block:] = dev.signal("tip_um")[:, (k0 + off) * block:off * block + n]
+    tip[:, k0 * block:] = a["dev"].signal("tip_um")[:, (k0 + off) * block:off * block + n]
     return (tip, off) if offset else tip
 
 

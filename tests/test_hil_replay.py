@@ -26,24 +26,32 @@ if JACKD is None:
                 allow_module_level=True)
 require("jack", "sounddevice")
 
-from test_hil_control import AUDIO, on_audio, sets, timing, without_xruns  # noqa: E402
+from test_hil_control import AUDIO, FS, emulator_alignment, on_audio, sets, timing, without_xruns  # noqa: E402
 
 SCENE = "line-bimorph-5"
 
 
 def audio_run(tmp_path, name, block, device):
+    """An audio run against the emulator; a period the emulator did not hear as the run sent it
+    (lost or repeated between them, seen in its record of the drive) counts as an xrun."""
     out = tmp_path / name
     r = on_audio(tmp_path, name, ["run", SCENE, "--json", "--no-plot", "--out", str(out),
                                   *sets(timing(block) + AUDIO)], block, device)
-    return dict(r, out=out, xruns=json.loads(r["proc"].stdout)["io"]["xruns"])
+    xruns = json.loads(r["proc"].stdout)["io"]["xruns"]
+    a = emulator_alignment(out, r["truth"] / "run-1", block)
+    if not a["same"]:
+        xruns = f"{xruns} in the run, and a period lost or repeated between it and the emulator"
+    return dict(r, out=out, xruns=xruns, connected_s=a["k0"] * block / FS)
 
 
 def audio_run_replayed(tmp_path, name, device=()):
     """An audio run without xruns (test_hil_control's tries; when every one has xruns the test
     skips: a glitch the plant never saw is not the model's fault), replayed on the plant."""
-    out = without_xruns(lambda i, block: audio_run(tmp_path, f"{name}-{block}-{i}", block, device))["out"]
-    # the emulator connects a few blocks into the run: its plant starts later than the model's
-    p = subprocess.run(CLI + ["replay", str(out), "--mode", "plant", "--skip", "0.1", "--json"],
+    r = without_xruns(lambda i, block: audio_run(tmp_path, f"{name}-{block}-{i}", block, device))
+    # the emulator connects a few blocks into the run: its plant starts later than the model's,
+    # and is compared from 0.1 s after it connected
+    skip = f"{0.1 + r['connected_s']:.6f}"
+    p = subprocess.run(CLI + ["replay", str(r["out"]), "--mode", "plant", "--skip", skip, "--json"],
                        capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr
     rep = json.loads(p.stdout)
