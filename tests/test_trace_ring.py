@@ -94,6 +94,33 @@ def test_a_full_ring_drops_counts_and_leaves_placeholders(tmp_path):
     np.testing.assert_array_equal(drive[~gap][:, 0, 0], [0, 1, 2, 3, 10, 11])
 
 
+def test_the_drain_hands_back_each_piece_as_soon_as_it_is_written(tmp_path, monkeypatch):
+    """A producer waiting for room goes on while the rest of a pass is written: with pieces of
+    two records, the slots of each piece are free before the next piece is appended."""
+    w, src, ring = _tiny(tmp_path, slots=8)
+    monkeypatch.setattr(ringmod, "PIECE_BYTES", 2 * ring.records.dtype.itemsize)
+    for k in range(7):
+        src[:] = k
+        assert ring.push(k, 0)
+    seen = []
+
+    class Noting:
+        def __getattr__(self, name):
+            return getattr(w, name)
+
+        def append(self, recs):
+            seen.append((int(ring.heads[READ]), len(recs)))
+            w.append(recs)
+
+    d = Drain(ring, Noting(), _Bar(), poll_s=0.001)
+    d.start()
+    d.stop(7)
+    w.close()
+    assert d.error is None
+    assert seen == [(0, 2), (2, 2), (4, 2), (6, 1)]
+    np.testing.assert_array_equal(TraceReader(tmp_path).records["drive"][:, 0, 0], np.arange(7))
+
+
 def test_an_old_trace_without_the_count_reads_as_none_dropped(tmp_path):
     import json
 

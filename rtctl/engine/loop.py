@@ -174,9 +174,10 @@ class Loop:
             # started before this thread asks for a real-time priority or a CPU: it inherits neither
             pinned = self.cpu if self.ask_os else -1
             below = max(1, self.priority - 10) if self.ask_os and self.priority > 0 else 0
-            # a pass at least every FLUSH_S: a killed process loses at most about that much trace
+            # a pass at least every FLUSH_S: a killed process loses at most about that much trace;
+            # a run as fast as it goes fills a ring piece in about a millisecond: look that often
             self.drain = Drain(self.ring, self.writer, self.bar, realtime.other_cpus(pinned), below,
-                               FLUSH_S if self.strict else 0.01, st[pace.START:pace.START + 1] if paced else None)
+                               FLUSH_S if self.strict else 0.001, st[pace.START:pace.START + 1] if paced else None)
             self.drain.start()
         session = realtime.enter(paced, self.ask_os, self.priority, self.cpu)
         for note in session.notes:
