@@ -38,7 +38,8 @@ RING_SECONDS = 2.0
 #: Largest ring, bytes (a many-channel scene with long blocks holds fewer seconds).
 MAX_BYTES = 512 << 20
 #: The drain writes and hands back at most this many bytes of records at a time (at least one
-#: record), so that a producer waiting for room goes on while the rest is written.
+#: record, at most half the ring), so that a producer waiting for room goes on while the rest is
+#: written.
 PIECE_BYTES = 1 << 20
 
 
@@ -215,7 +216,8 @@ class Drain(threading.Thread):
         self.error = None
         self._stop_at = None
         self._wake = threading.Event()
-        self._piece = max(1, PIECE_BYTES // ring.records.dtype.itemsize)
+        # at most half the ring: a pass of a piece then means more may be waiting
+        self._piece = max(1, min(ring.slots // 2, PIECE_BYTES // ring.records.dtype.itemsize))
 
     def kick(self) -> None:
         """Make a pass now (a producer that waits for room; never a real-time loop)."""
