@@ -15,7 +15,10 @@ small recursions run sample by sample. Both products are one matrix each over th
 *sources* ``X`` (rows: ``e = [z; g]`` before each sample, then per cell ``v``, ``y``, ``y'``,
 ``u - v``, ``v - y`` and ``u``), run as tiles of up to 3 rows by 8 sources with time innermost
 (:func:`rtctl.plant._kernels.lti_outputs`): each source value loaded serves 3 rows, where a
-row-by-row ``out += w * x`` loads and stores its row once per multiply-add. The differences
+row-by-row ``out += w * x`` loads and stores its row once per multiply-add. The dense
+``Rd [y; y']`` (48 x 48, the same matrix on ``y`` and on ``y'``) is one product over ``[y | y']``,
+twice the samples: half the tiles, each of twice the length (a tile's fixed cost is most of its
+time at 32 samples). The differences
 ``u - v`` and ``v - y`` are sources of their own so that the cell current's ``C_f w_a (u - v)``
 and the residual acceleration ``w_r^2 (v - y)`` are not formed from two large products that
 cancel.
@@ -79,7 +82,7 @@ def _recurse(zi, pi, L, Gg, Gp, alpha, Z, G, P, E, nb):
 
 @kernel
 def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, oplan, ocoef,
-                       zeros, P, X, ys, probe, drive, sensed, truth):
+                       rplan, rcoef, zeros, P, X, ys, Y2, ys2, probe, drive, sensed, truth):
     """Advance one plate with all its PVDF cells by one block (``PvdfGroup``'s kernel).
 
     Parameters
@@ -99,16 +102,20 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
     Z, G, V : ndarray, shapes (n_z + 1,), (n_p + 1,), (n_channels, 3)
         States: modal, amplified projections (last entries of Z, G: dummies), and per cell
         ``(v, y, y')``: voltage and residual mode.
-    qplan, qcoef, oplan, ocoef : ndarray
-        Tiles (:func:`rtctl.plant._kernels.output_plan`) of the input projections ``P = Q u``
-        and of every output row over the sources ``X`` (``ys``: cell displacement, velocity
-        and current, force on the finger, probes): ``PvdfGroup.Q`` and ``PvdfGroup.W``.
+    qplan, qcoef, oplan, ocoef, rplan, rcoef : ndarray
+        Tiles (:func:`rtctl.plant._kernels.output_plan`) of the input projections ``P = Q u``,
+        of every output row over the sources ``X`` (``ys``: cell displacement, velocity and
+        current, force on the finger, probes; ``PvdfGroup.Q`` and ``PvdfGroup.W``), and of the
+        truncated modes' static displacement ``Rd`` over ``Y2 = [y | y']`` (``ys2``: the
+        displacement terms in its first ``nb`` columns, the velocity terms in the next ``nb``;
+        one product over twice the samples, added to ``ys``'s rows when they are copied out).
     zeros : ndarray
-        At least ``max(3 n_channels + 1 + n_probe, n_p + 1, max_block)`` zeros (the tiles'
+        At least ``max(3 n_channels + 1 + n_probe, n_p + 1, 2 max_block)`` zeros (the tiles'
         feedthrough and its input).
-    P, X, ys : ndarray
+    P, X, ys, Y2, ys2 : ndarray
         Scratch, shapes ``(n_p + 1, >= max_block)``, ``(n_e + 6 n_channels, >= max_block)``,
-        ``(3 n_channels + 1 + n_probe, >= max_block)``.
+        ``(3 n_channels + 1 + n_probe, >= max_block)``, ``(n_channels, >= 2 max_block)``,
+        ``(n_channels + 1, >= 2 max_block)``.
     probe : ndarray, shape (n_probe, max_block)
         Written: the probe signals of the last chunk (``probe[:, :nb]``).
     drive : ndarray, shape (n_channels, n)
@@ -156,6 +163,8 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
                 X[x_v + j, t] = v
                 X[x_y + j, t] = y
                 X[x_yd + j, t] = w
+                Y2[j, t] = y
+                Y2[j, nb + t] = w
                 X[x_uv + j, t] = ut - v
                 X[x_vy + j, t] = v - y
                 nv = r00 * v + r01 * y + r02 * w + b0 * ut
@@ -168,11 +177,12 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
             V[j, 1] = y if abs(y) >= TINY else 0.0
             V[j, 2] = w if abs(w) >= TINY else 0.0
         lti_outputs(oplan, ocoef, zeros, X, zeros, 0, ys, nb)
+        lti_outputs(rplan, rcoef, zeros, Y2, zeros, 0, ys2, 2 * nb)
         for j in range(nc):
             for t in range(nb):
-                truth[j, 0, start + t] = ys[j, t]
+                truth[j, 0, start + t] = ys[j, t] + ys2[j, t]
             for t in range(nb):
-                truth[j, 1, start + t] = ys[nc + j, t]
+                truth[j, 1, start + t] = ys[nc + j, t] + ys2[j, nb + t]
             if j == fch:
                 for t in range(nb):
                     truth[j, 2, start + t] = ys[3 * nc, t] + preload
@@ -185,6 +195,9 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
                 _copy(ys, 2 * nc + j, 0, sensed, j, start, nb)
         for i in range(n_probe):
             _copy(ys, 3 * nc + 1 + i, 0, probe, i, 0, nb)
+        for t in range(nb):  # the probe's displacement and velocity: rows 0 and 1
+            probe[0, t] += ys2[nc, t]
+            probe[1, t] += ys2[nc, nb + t]
     bad = False
     for c in range(Z.shape[0]):
         if not math.isfinite(Z[c]):

@@ -39,7 +39,7 @@ import numpy as np
 from rtctl.errors import ModelError
 from rtctl.plant import _pvdf_kernels as _k
 from rtctl.plant._checks import positive
-from rtctl.plant._kernels import aligned_zeros, output_plan
+from rtctl.plant._kernels import PLAN_COLUMNS, aligned_zeros, output_plan
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.lti import StateSpace, c2d, to_modal
 from rtctl.plant.materials import EPS0
@@ -612,7 +612,9 @@ class PvdfGroup:
         #: cells and the probe (m/V) and share of the cell capacitances (F).
         self.Q, self.C = np.ascontiguousarray(Q), Cout
         self.Rd, self.Rq = plant.residual_disp, plant.residual_capacitance
-        #: Every output row (as ``C``'s) over the kernel's sources ``[e; v; y; y'; u - v; v - y; u]``.
+        #: Every output row (as ``C``'s) over the kernel's sources ``[e; v; y; y'; u - v; v - y; u]``,
+        #: less the truncated modes' ``Rd [y; y']`` on the displacement and velocity rows (cells
+        #: and probe), which the kernel adds from one product over ``[y | y']``.
         self.W = self._outputs(n_e, nc, consts, residual, plant.finger_channel)
         n_out, n_src = self.W.shape
         active = [r for r in range(n_out) if np.any(self.W[r] != 0.0)] or [0]
@@ -620,6 +622,10 @@ class PvdfGroup:
         oplan[:, 1:4] = np.asarray(active)[oplan[:, 1:4]]
         qplan, qcoef = output_plan(self.Q)
         qplan[:, 5:] += n_e + 5 * nc          # the drive's rows of the sources
+        if residual:
+            rplan, rcoef = output_plan(self.Rd)
+        else:
+            rplan, rcoef = np.zeros((0, PLAN_COLUMNS), dtype=np.int64), np.zeros((0, 3, 8))
         self.consts = consts
         self.args = (
             np.array([mb, plant.finger_channel, self.n_sensed, len(PROBE_NAMES), int(residual),
@@ -628,18 +634,20 @@ class PvdfGroup:
             np.zeros(n_z + 1),            # Z: modal states (+ dummy)
             np.zeros(n_p + 1),            # G: amplified projections (+ dummy)
             np.zeros((nc, 3)),            # V: per cell voltage and residual mode (v, y, y')
-            qplan, qcoef, oplan, ocoef,
-            np.zeros(max(n_out, n_p + 1, mb)),
+            qplan, qcoef, oplan, ocoef, rplan, rcoef,
+            np.zeros(max(n_out, n_p + 1, 2 * mb)),
             aligned_zeros((n_p + 1, mb)),  # P: projections of a chunk (last row stays 0)
             aligned_zeros((n_src, mb)),    # X: the sources of a chunk
             aligned_zeros((n_out, mb)),    # ys: the outputs of a chunk
+            aligned_zeros((nc, 2 * mb)),   # Y2: per cell [y | y'] of a chunk
+            aligned_zeros((nc + 1, 2 * mb)),  # ys2: Rd [y | y']
             self.probe,
         )
 
     def _outputs(self, n_e, nc, consts, residual, finger):
         """The output matrix over the sources (see :attr:`W`): rows of ``C`` for what is
         written (the currents only when sensed, the force only with a finger), the residual
-        terms, and the currents' amplifier term."""
+        terms but ``Rd [y; y']``, and the currents' amplifier term."""
         C, Rd, Rq = self.C, self.Rd, self.Rq
         cf_wa, wr2, cr = consts[2], consts[3], consts[4]
         v, y, yd, uv, vy = (n_e + k * nc for k in range(5))
@@ -652,13 +660,9 @@ class PvdfGroup:
             W[2 * nc:3 * nc] = 0.0
         if finger < 0:
             W[3 * nc] = 0.0
-        if residual:
-            W[:nc, y:y + nc] = Rd[:nc]
-            W[nc:2 * nc, yd:yd + nc] = Rd[:nc]
+        if residual:  # (Rd [y; y'] on displacement and velocity is the kernel's second product)
             if self.currents:
                 W[2 * nc:3 * nc, yd:yd + nc] = Rq
-            W[3 * nc + 1, y:y + nc] = Rd[nc]
-            W[3 * nc + 2, yd:yd + nc] = Rd[nc]
             W[3 * nc + 3, vy:vy + nc] = wr2 * Rd[nc]
             W[3 * nc + 3, yd:yd + nc] = -cr * Rd[nc]
         return W
