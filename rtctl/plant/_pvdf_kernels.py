@@ -12,8 +12,8 @@ group is one MIMO system; per sample and per modal block ``b`` (2 states for a c
 
 The projections are formed and the outputs evaluated for a whole chunk at a time; only the
 small recursions run sample by sample. Both products are one matrix each over the chunk's
-*sources* ``X`` (rows: ``e = [z; g]`` before each sample, then per cell ``v``, ``y``, ``y'``,
-``u - v``, ``v - y`` and ``u``), run as tiles of up to 3 rows by 8 sources with time innermost
+*sources* ``X`` (rows: ``e = [z; g]`` before each sample, then per cell ``v``, ``y'``, ``u - v``,
+``v - y`` and ``u``), run as tiles of up to 3 rows by 8 sources with time innermost
 (:func:`rtctl.plant._kernels.lti_outputs`): each source value loaded serves 3 rows, where a
 row-by-row ``out += w * x`` loads and stores its row once per multiply-add. The dense
 ``Rd [y; y']`` (48 x 48, the same matrix on ``y`` and on ``y'``) is one product over ``[y | y']``,
@@ -113,7 +113,7 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
         At least ``max(3 n_channels + 1 + n_probe, n_p + 1, 2 max_block)`` zeros (the tiles'
         feedthrough and its input).
     P, X, ys, Y2, ys2 : ndarray
-        Scratch, shapes ``(n_p + 1, >= max_block)``, ``(n_e + 6 n_channels, >= max_block)``,
+        Scratch, shapes ``(n_p + 1, >= max_block)``, ``(n_e + 5 n_channels, >= max_block)``,
         ``(3 n_channels + 1 + n_probe, >= max_block)``, ``(n_channels, >= 2 max_block)``,
         ``(n_channels + 1, >= 2 max_block)``.
     probe : ndarray, shape (n_probe, max_block)
@@ -143,11 +143,10 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
     r20, r21, r22 = consts[11], consts[12], consts[13]
     b0, b1, b2 = consts[14], consts[15], consts[16]
     x_v = n_e
-    x_y = n_e + nc
-    x_yd = n_e + 2 * nc
-    x_uv = n_e + 3 * nc
-    x_vy = n_e + 4 * nc
-    x_u = n_e + 5 * nc
+    x_yd = n_e + nc
+    x_uv = n_e + 2 * nc
+    x_vy = n_e + 3 * nc
+    x_u = n_e + 4 * nc
     for start in range(0, n, blk):
         nb = min(blk, n - start)
         for j in range(nc):
@@ -161,7 +160,6 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
             for t in range(nb):
                 ut = X[x_u + j, t]
                 X[x_v + j, t] = v
-                X[x_y + j, t] = y
                 X[x_yd + j, t] = w
                 Y2[j, t] = y
                 Y2[j, nb + t] = w

@@ -612,7 +612,7 @@ class PvdfGroup:
         #: cells and the probe (m/V) and share of the cell capacitances (F).
         self.Q, self.C = np.ascontiguousarray(Q), Cout
         self.Rd, self.Rq = plant.residual_disp, plant.residual_capacitance
-        #: Every output row (as ``C``'s) over the kernel's sources ``[e; v; y; y'; u - v; v - y; u]``,
+        #: Every output row (as ``C``'s) over the kernel's sources ``[e; v; y'; u - v; v - y; u]``,
         #: less the truncated modes' ``Rd [y; y']`` on the displacement and velocity rows (cells
         #: and probe), which the kernel adds from one product over ``[y | y']``.
         self.W = self._outputs(n_e, nc, consts, residual, plant.finger_channel)
@@ -621,7 +621,7 @@ class PvdfGroup:
         oplan, ocoef = output_plan(self.W[active])
         oplan[:, 1:4] = np.asarray(active)[oplan[:, 1:4]]
         qplan, qcoef = output_plan(self.Q)
-        qplan[:, 5:] += n_e + 5 * nc          # the drive's rows of the sources
+        qplan[:, 5:] += n_e + 4 * nc          # the drive's rows of the sources
         if residual:
             rplan, rcoef = output_plan(self.Rd)
         else:
@@ -650,8 +650,8 @@ class PvdfGroup:
         terms but ``Rd [y; y']``, and the currents' amplifier term."""
         C, Rd, Rq = self.C, self.Rd, self.Rq
         cf_wa, wr2, cr = consts[2], consts[3], consts[4]
-        v, y, yd, uv, vy = (n_e + k * nc for k in range(5))
-        W = np.zeros((C.shape[0], n_e + 6 * nc))
+        _, yd, uv, vy = (n_e + k * nc for k in range(4))  # after e: v (the truth's voltage), y', u - v, v - y
+        W = np.zeros((C.shape[0], n_e + 5 * nc))
         W[:, :n_e] = C
         cells = np.arange(nc)
         if self.currents:
