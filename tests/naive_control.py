@@ -9,6 +9,7 @@ from rtctl.control._kernels import (
     AMAX,
     BANK,
     BIG_STEP,
+    CHANGED,
     CHANNEL,
     CMD,
     DEADBAND,
@@ -21,6 +22,9 @@ from rtctl.control._kernels import (
     GHAT,
     GLIVE,
     HOLD,
+    HOLD0,
+    HOLDMAX,
+    LASTDIR,
     LIMSEEN,
     LIVE_DRIVE,
     MAX_STEP,
@@ -33,6 +37,8 @@ from rtctl.control._kernels import (
     PATIENCE,
     REF,
     REFV,
+    REVERSAL,
+    REVS,
     RISE,
     RISEK,
     RREF,
@@ -52,6 +58,10 @@ from rtctl.control._kernels import (
 )
 from rtctl.dsp._kernels import P_AMP, P_FLAG, P_RAMP
 from rtctl.safety import CONTROL_FROZEN, CONTROL_SATURATED
+
+
+def _pace_anew(col):
+    col[HOLD], col[LASTDIR], col[REVS] = col[HOLD0], 0.0, 0.0
 
 
 def amplitude_control(est, drive_est, index, target, state, pending, lim_counts, ramp):
@@ -85,12 +95,14 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             a = r / col[GLIVE]
             col[TPREV], col[WAIT] = r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
             col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+            _pace_anew(col)
         elif starting or r != col[TPREV]:
             a = r / col[GHAT] if col[GHAT] > 0 else START * r * col[FF]
             if starting:
                 col[RISEK], col[A0], rising = 0.0, 0.0, col[RISE] > 0
             col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
             col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+            _pace_anew(col)
         elif col[WAIT] > 0:
             col[WAIT] -= 1
             if not rising:
@@ -115,6 +127,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 continue
             mean, prev, prev_var = col[SUM] / col[RUN], col[REF], col[REFV]
             var = max(col[SQ] / col[RUN] - mean * mean, 0.0) / col[RUN]
+            if prev > 0 and abs(mean / prev - 1) > CHANGED:
+                _pace_anew(col)
             col[REF], col[REFV], col[SUM], col[SQ], col[RUN] = mean, var, 0.0, 0.0, 0.0
             far_agree = (col[SCATTER] != 0 and abs(r / mean - 1) > FAR
                          and abs(mean - prev) <= NOISE_Z * math.sqrt(var + prev_var))
@@ -129,10 +143,23 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             step = (r / mean) ** g
             if abs(step - 1) <= DEADBAND:
                 col[TRIES] = 0.0
+                _pace_anew(col)
                 continue
             step = min(max(step, 1 / MAX_STEP), MAX_STEP)
             if limited and step > 1:
                 step = 1.0
+            up = 1.0 if step > 1 else -1.0
+            if not 1 / REVERSAL < step < REVERSAL:
+                _pace_anew(col)
+                col[LASTDIR] = up
+            elif abs(step - 1) > AGREE:
+                if up == -col[LASTDIR]:
+                    col[REVS] += 1
+                    if col[REVS] >= 2:
+                        col[HOLD] = min(2 * col[HOLD], col[HOLDMAX])
+                else:
+                    col[REVS] = 0.0
+                col[LASTDIR] = up
             a *= step
             col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
             col[WAIT] = col[WARM]

@@ -38,8 +38,12 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  SQ,      # sum of the squares of the present stretch's estimates, m^2
  REFV,    # the variance of the mean of the last complete stretch, m^2
  SCATTER,  # 1: a stretch spans at least one window (the spread of its estimates is their noise)
- ) = range(31)
-N_STATE = 31
+ HOLD0,   # the designed stretch, which HOLD returns to (HOLD grows while corrections hunt)
+ HOLDMAX,  # the longest stretch HOLD may grow to
+ LASTDIR,  # the direction of the last correction: +1 up, -1 down, 0 none since the pace was reset
+ REVS,    # small corrections in a row, each reversing the one before
+ ) = range(35)
+N_STATE = 35
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -90,6 +94,20 @@ NOISE_Z = 2.0
 #: an error smaller than this is left alone: a correction blinds the loop for a window, and the
 #: loop then answers a change of the plant a window later
 DEADBAND = 0.002
+#: hunting: two corrections in a row by more than AGREE and less than this factor (either way),
+#: each reversing the one before, mean that two stretches agreed on the extremes of a beat of
+#: the tone with a loaded mode (a mode 70 Hz away beats with a 500 Hz tone every 15 ms;
+#: stretches of 4 blocks see its swing, not its mean), and each such correction rings the mode
+#: again. From then on every such correction doubles the stretch (up to ``HOLDMAX``, half the
+#: model's ring time), until the stretches average the beat out. Finer corrections (the last
+#: percent or two of a noise-bound tone) neither count nor break the count. An on-target
+#: stretch, a start or target step, a bigger correction and two stretches ``CHANGED`` apart (the
+#: plant changed: an event) set the stretch back. Figures: docs/control.md, "Hunting beside a
+#: loaded mode".
+REVERSAL = 1.3
+#: two successive stretches further apart than this share say the plant changed: the stretch
+#: goes back to its designed length, so an event is answered at the designed pace
+CHANGED = 4.0 * AGREE
 
 
 @kernel
@@ -102,6 +120,14 @@ def _watch_anew(state, i):
     state[TRIES, i] = 0.0
     state[ALL, i] = 0.0
     state[NALL, i] = 0.0
+
+
+@kernel
+def _pace_anew(state, i):
+    """The designed stretch again, and no hunting counted."""
+    state[HOLD, i] = state[HOLD0, i]
+    state[LASTDIR, i] = 0.0
+    state[REVS, i] = 0.0
 
 
 @kernel
@@ -172,6 +198,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             state[TPREV, i] = r
             state[WAIT, i] = state[WARM, i] + max(0.0, state[RISE, i] - state[RISEK, i] - 1.0)
             _watch_anew(state, i)
+            _pace_anew(state, i)
         elif state[ON, i] == 0.0 or r != state[TPREV, i]:
             # a start or a target step: the drive for the new target from the tip per volt the
             # last fresh estimate showed (what feedback learned), else from the model's
@@ -183,6 +210,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 state[RISEK, i] = 0.0
                 state[A0, i] = 0.0
                 rising = state[RISE, i] > 0.0
+            _pace_anew(state, i)
             state[ON, i] = 1.0
             state[TPREV, i] = r
             # the estimate answers the command once the rise has reached it and a window has passed
@@ -224,6 +252,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             m = state[SUM, i] / n_run
             v = max(state[SQ, i] / n_run - m * m, 0.0) / n_run  # the mean's variance, as if independent
             prev, pv = state[REF, i], state[REFV, i]
+            if prev > 0.0 and abs(m / prev - 1.0) > CHANGED:
+                _pace_anew(state, i)
             state[REF, i] = m
             state[REFV, i] = v
             state[SUM, i] = 0.0
@@ -246,10 +276,23 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             step = (r / y) ** g
             if abs(step - 1.0) <= DEADBAND:
                 state[TRIES, i] = 0.0  # on target: keep watching (this stretch compares with the next)
+                _pace_anew(state, i)
                 continue
             step = min(max(step, 1.0 / MAX_STEP), MAX_STEP)
             if limited and step > 1.0:
                 step = 1.0  # the limiter holds this channel: no windup
+            d = 1.0 if step > 1.0 else -1.0
+            if not (step < REVERSAL and step * REVERSAL > 1.0):
+                _pace_anew(state, i)
+                state[LASTDIR, i] = d
+            elif abs(step - 1.0) > AGREE:  # (finer corrections tune, they do not hunt)
+                if d == -state[LASTDIR, i]:
+                    state[REVS, i] += 1.0
+                    if state[REVS, i] >= 2.0:
+                        state[HOLD, i] = min(2.0 * state[HOLD, i], state[HOLDMAX, i])
+                else:
+                    state[REVS, i] = 0.0
+                state[LASTDIR, i] = d
             a = a * step
             _watch_anew(state, i)
             state[WAIT, i] = state[WARM, i]  # judge this command only once the estimate is all of it

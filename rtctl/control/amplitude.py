@@ -26,7 +26,12 @@ steps, per controlled tone:
   more than 2x rises from the present drive as a start does), then wait ``W`` again. An error
   under 0.2 % is left alone and the watch goes on: a correction blinds the loop for ``W``, so
   skipping needless ones lets it answer a change of the plant a window sooner (``M + L + 2 H``
-  blocks after the change, rather than up to ``W`` more).
+  blocks after the change, rather than up to ``W`` more);
+* hunting: from the second correction in a row by 5-30 % (either way) that reverses the one
+  before, each such correction doubles ``H``, up to half the ring time: the two stretches had
+  agreed on the extremes of a beat of the tone with a loaded mode, which a longer stretch
+  averages out. An on-target stretch, a start or target step, a correction by more than 30 %,
+  and two stretches more than 20 % apart (an event) set ``H`` back to its design.
 
 With ``g = 1`` this is deadbeat for a static plant: one correction removes a model error up to a
 factor of four (a wild estimate cannot move the drive by more), and feedback never crosses the
@@ -54,6 +59,8 @@ from ._kernels import (
     FF,
     GAIN,
     HOLD,
+    HOLD0,
+    HOLDMAX,
     N_INDEX,
     N_STATE,
     N_TARGET,
@@ -116,8 +123,9 @@ class AmplitudeController:
     ring : int
         Blocks the plant rings after a start or a target step (its slowest loaded mode's time
         constant, from the model): it sets the stretch (:func:`steady_blocks`, at least an
-        eighth of it). The wait after a command is the window and the latency alone (``WARM``):
-        two steady stretches are what keep a ring from being corrected on.
+        eighth of it, and a hunting loop's stretch, at most half of it). The wait after a
+        command is the window and the latency alone (``WARM``): two steady stretches are what
+        keep a ring from being corrected on.
     rise : int
         Blocks a tone's start (or a correction by more than ``BIG_STEP``) rises over to its
         command, along a raised cosine (0 or 1: within one block, a ramp of ``block`` samples). A
@@ -182,7 +190,8 @@ class AmplitudeController:
         self.state[AMAX] = self._amax
         self.state[GAIN] = self.gain
         self.state[WARM] = self.warm
-        self.state[HOLD] = self.hold
+        self.state[HOLD] = self.state[HOLD0] = self.hold
+        self.state[HOLDMAX] = np.maximum(self.hold, -(-self.ring // 2))
         self.state[SCATTER] = self.scatter
         self.state[RISE] = self.rise
         self.target[TARGET] = self.targets0
