@@ -4,21 +4,28 @@ Runs ``SimGroup`` (48 channels, 4 modes, 3-branch finger, amplifier, 2-segment c
 16 states) at 48 kHz in blocks of 32, called the way the loop calls it (from a numba function),
 and compares with baselines in the same process: the same kernel running the dense fallback
 realization (``form="dense"``), a numpy matmul per sample over all channels (dense discrete
-model) and ``scipy.signal.dlsim`` per channel. Compile time is reported apart. Prints one JSON
-object, then a table.
+model) and ``scipy.signal.dlsim`` per channel. Compile time is reported apart. Beside the
+kernel's time: its floating-point operations per channel-sample and the share of the core's
+float64 peak they run at (``bench/roofline.py``). Prints one JSON object, then a table.
 
     python bench/plant.py [--channels 48] [--seconds 2] [--chunk 8]
 """
 
 import argparse
 import json
+import os
 import time
 
-import numpy as np
-import scipy.signal
-from numba import njit
+# one BLAS thread before numpy loads: the numpy baseline and the core's peak are one core's
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from rtctl.plant import (
+import numpy as np  # noqa: E402
+import roofline  # noqa: E402
+import scipy.signal  # noqa: E402
+from numba import njit  # noqa: E402
+
+from rtctl.plant import (  # noqa: E402
     BUILTIN,
     TRUTH_NAMES,
     Amplifier,
@@ -135,6 +142,8 @@ def main(argv=None):
     ns_dlsim = (time.perf_counter() - t0) / n_dl * 1e9
 
     per_second = ns_kernel * 1e-9 * nc * FS
+    flops = roofline.plant_flops(group)
+    peak = roofline.core_peak_gflops()
     out = {
         "fs": FS, "block": BLOCK, "channels": nc, "states": group.n_states,
         "outputs": len(TRUTH_NAMES) + group.n_seg, "form": group.modal.form,
@@ -149,6 +158,9 @@ def main(argv=None):
         "baseline_dense_kernel_ns": ns_dense, "speedup_vs_dense_kernel": ns_dense / ns_modal_paired,
         "baseline_numpy_ns": ns_numpy, "baseline_dlsim_ns": ns_dlsim,
         "speedup_vs_numpy": ns_numpy / ns_kernel, "speedup_vs_dlsim": ns_dlsim / ns_kernel,
+        "flops_per_channel_sample": flops, "core_peak_gflops": peak,
+        "ns_per_channel_sample_at_peak": roofline.at_peak_ns(flops["total"], peak),
+        "share_of_peak": flops["total"] / ns_kernel / peak,
     }
     print(json.dumps(out))
     print(f"{'what':<42}{'ns / channel-sample':>20}")
@@ -165,6 +177,11 @@ def main(argv=None):
           f"multiply-adds per channel-sample): {100 * per_second:.1f} % of one core in real time "
           f"at {FS:.0f} Hz (x{1 / per_second:.0f}); compile {compile_s:.2f} s, build "
           f"{build_s:.2f} s")
+    print(f"{flops['total']} flops per channel-sample (recursion {flops['recursion']}, outputs "
+          f"{flops['outputs']}, ADC {flops['adc']}): {flops['total'] / ns_kernel:.1f} GFLOP/s, "
+          f"{100 * out['share_of_peak']:.0f} % of the core's float64 peak ({peak:.1f} GFLOP/s, "
+          f"dgemm on one thread); at the peak {out['ns_per_channel_sample_at_peak']:.2f} ns per "
+          f"channel-sample")
 
 
 if __name__ == "__main__":

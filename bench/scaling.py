@@ -7,7 +7,10 @@ thread's CPU time: the wall clock of a shared machine mostly measures the other 
 the wall-clock one, open loop and closed loop (the group's observer and controller stages), and
 the rig's build time (the observer's design; numba compiling or loading the composed block
 function). Reports the largest channel count that runs at 1.5x real time or more (50 % headroom
-on one core) and, per configuration, the CPU time per channel-sample.
+on one core) and, per configuration, the CPU time per channel-sample beside the machine's limit:
+the simulated plant's floating-point operations per channel-sample and the time they take at the
+core's float64 peak (``bench/roofline.py``; the observer, controller, oscillators and limiter
+come on top of it).
 
     python bench/scaling.py [--channels 1,16,64,256,1024] [--modes 2,4,8,12] [--blocks 300]
                             [--loops open,closed] [--per-channel-upto N] [--rounds 3] [--json]
@@ -21,11 +24,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
+# one BLAS thread before numpy loads: the core's peak is one core's
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import roofline  # noqa: E402
 from loop import scene_for  # noqa: E402
 
 FS, BLOCK = 48000.0, 32
@@ -65,7 +73,8 @@ def measure(channels: int, modes: int, closed: bool, blocks: int, twin: bool = F
     sim = rounds * -(-blocks // rounds) * BLOCK / FS
     out = {"channels": channels, "modes": modes, "closed": closed, "cpu_rtf": sim / cpu[0], "wall_rtf": sim / wall[0],
            "ns_per_channel_sample": 1e9 * cpu[0] / (sim * FS * channels), "build_s": builds[0],
-           "states_per_channel": int(rigs[0].device.groups[0][0].n_states)}
+           "states_per_channel": int(rigs[0].device.groups[0][0].n_states),
+           "plant_flops_per_channel_sample": roofline.plant_flops(rigs[0].device.groups[0][0])["total"]}
     if twin:
         out.update(per_channel_build_s=builds[1], per_channel_cpu_rtf=sim / cpu[1], per_channel_wall_rtf=sim / wall[1])
     return out
@@ -93,6 +102,9 @@ def main(argv=None) -> int:
     chans = [int(x) for x in a.channels.split(",")]
     modes = [int(x) for x in a.modes.split(",")]
     rows = []
+    peak = roofline.core_peak_gflops()
+    if not a.json:
+        print(f"core's float64 peak (dgemm, one thread): {peak:.1f} GFLOP/s", file=sys.stderr, flush=True)
     for closed in loops:
         for m in modes:
             for c in chans:
@@ -103,11 +115,14 @@ def main(argv=None) -> int:
                     print(f"  {'closed' if closed else 'open  '} modes {m:2d} {c:5d} ch: cannot run "
                           f"({type(e).__name__}: {str(e).splitlines()[0]})", file=sys.stderr, flush=True)
                     continue
+                r["plant_ns_at_peak"] = roofline.at_peak_ns(r["plant_flops_per_channel_sample"], peak)
                 rows.append(r)
                 if not a.json:
                     print(f"  {'closed' if closed else 'open  '} modes {m:2d} ({r['states_per_channel']} states) "
                           f"{c:5d} ch: CPU x{r['cpu_rtf']:8.2f}  wall x{r['wall_rtf']:8.2f}  "
-                          f"{r['ns_per_channel_sample']:7.1f} ns per channel-sample  build {r['build_s']:6.1f} s"
+                          f"{r['ns_per_channel_sample']:7.1f} ns per channel-sample (the plant's "
+                          f"{r['plant_flops_per_channel_sample']} flops at the peak: {r['plant_ns_at_peak']:4.1f})  "
+                          f"build {r['build_s']:6.1f} s"
                           + (f"  | a controller per channel: CPU x{r['per_channel_cpu_rtf']:8.2f} wall "
                              f"x{r['per_channel_wall_rtf']:8.2f} build {r['per_channel_build_s']:6.1f} s"
                              if "per_channel_cpu_rtf" in r else ""), file=sys.stderr, flush=True)
@@ -116,7 +131,8 @@ def main(argv=None) -> int:
         for m in modes:
             ok = [r["channels"] for r in rows if r["closed"] == closed and r["modes"] == m and r["cpu_rtf"] >= 1.5]
             largest[f"{'closed' if closed else 'open'} modes {m}"] = max(ok) if ok else 0
-    print(json.dumps({"fs": FS, "block": BLOCK, "rows": rows, "largest_channels_at_1.5x": largest}, indent=1))
+    print(json.dumps({"fs": FS, "block": BLOCK, "core_peak_gflops": peak, "rows": rows,
+                      "largest_channels_at_1.5x": largest}, indent=1))
     return 0
 
 
