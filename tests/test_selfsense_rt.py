@@ -173,7 +173,9 @@ def test_short_windows_by_hand():
     """On the block grid unless that is more than twice the shortest window without leakage (or
     twice a shortest window of 50 ms or more): whole periods on the sample grid (fs / f's reduced
     numerator, least common multiple over a channel's tones), or one period of the closest spacing
-    by least squares; the hop the largest divisor of the block dividing them all."""
+    by least squares; a window of whole periods holding fewer than 4 of the lowest tone made the
+    multiple of itself that does, if that is at most 4 ms; the hop the largest divisor of the
+    block dividing them all."""
     from rtctl.selfsense.rt import short_windows
 
     w, lsq, hop = short_windows([[2.0], [10.0], [40.0], [120.0], [250.0]], FS, BLOCK)
@@ -186,15 +188,23 @@ def test_short_windows_by_hand():
     # 80 Hz: 600 against 2400; 235 + 265: one 30 Hz beat (1600) against 9600; 245 + 255: one 10 Hz
     # beat (4800, 100 ms: at least LONG_WINDOW_S) against 9600, taken at twice; 240 + 270 Hz:
     # whole periods of both are one beat (1600); 35 + 45: 4800 against 9600, taken; 1 kHz: 48
-    # against 96, kept (twice, and 1 ms)
-    assert w.tolist() == [600, 1600, 4800, 1600, 4800, 96]
+    # against 96, kept (twice, and 1 ms), then 2 periods made 4 (192 samples, 4 ms)
+    assert w.tolist() == [600, 1600, 4800, 1600, 4800, 192]
     assert lsq.tolist() == [False, True, True, False, True, False] and hop == 8
     w, lsq, _ = short_windows(pairs, FS, BLOCK, long_s=0.2)  # twice is never enough
-    assert w.tolist() == [600, 1600, 9600, 1600, 9600, 96]
+    assert w.tolist() == [600, 1600, 9600, 1600, 9600, 192]
     assert lsq.tolist() == [False, True, False, False, False, False]
     w, lsq, _ = short_windows(pairs, FS, BLOCK, shorten=1)
-    assert w.tolist() == [600, 1600, 4800, 1600, 4800, 48]
+    assert w.tolist() == [600, 1600, 4800, 1600, 4800, 192]
     assert lsq.tolist() == [False, True, True, False, True, False]
+    w, _, _ = short_windows(pairs, FS, BLOCK, shorten=1, ring_s=0.0)  # never longer: 1 period
+    assert w.tolist() == [600, 1600, 4800, 1600, 4800, 48]
+    # 500 Hz: 4 periods would be 8 ms, kept at 1 (96); 1500 Hz: 1 period (32) made 4 (128); 2 kHz:
+    # already 4 (96); 1 kHz asked for 3 periods: the multiple of its 96 that holds them (192)
+    w, _, hop = short_windows([[500.0], [1500.0], [2000.0]], FS, BLOCK)
+    assert w.tolist() == [96, 128, 96] and hop == 32
+    assert short_windows([[1000.0]], FS, BLOCK, min_periods=3)[0].tolist() == [192]
+    assert short_windows([[500.0]], FS, BLOCK, ring_s=0.008)[0].tolist() == [384]
     # a tone whose one period (601 samples) would need a hop of 1: one period rounded up to the
     # block by least squares instead (608 samples, 1.013 periods)
     w, lsq, hop = short_windows([[48000.0 / 601, 0.0], [80.0, 0.0]], FS, BLOCK)

@@ -131,6 +131,18 @@ LONG_WINDOW_S = 0.05
 #: noise-bound on a weak tone (250 Hz at 1 V, a window of 4 ms: over 2 ms its choice followed the
 #: noise, and a start read 2.0 % off; over 25 ms, 0.8 %)
 LOAD_LAG_S = 0.025
+#: A closed-loop tone's window of whole periods is made a multiple of itself holding at least this
+#: many periods of the channel's lowest tone, where that multiple is no longer than
+#: :data:`RING_WINDOW_S`. A lock-in over ``N`` periods passes a sine at a relative distance ``d``
+#: from its tone at ``|sinc(N d)|``: the loaded beam's first mode, which a finger landing or
+#: lifting rings for tens of ms, sits 20-40 % from a 1 kHz tone (630-740 Hz under the finger,
+#: 1.2 kHz lifted) and passes at 0.45-0.74 of its amplitude over 2 periods, at most 0.21 over 4.
+#: After a landing the ring (1.4-2.2 um) then read as a 1 kHz tip of 1-2 um where it held 0.3.
+MIN_PERIODS = 4
+#: ... but no longer than this (s): a longer window answers later (500 Hz over 4 ms instead of
+#: 2: starts and lift-offs 2-10 ms slower, bench/control_sweep.py --quick), and where the modes sit
+#: within 20 % of the tone no window this short rejects them
+RING_WINDOW_S = 0.004
 #: nor does it make the lock-ins' hop shorter than this (each hop costs the ring update once more
 #: per block for every slot of the group): a window of whole periods that would need it is read by
 #: least squares on the block grid instead (48000 / 601 Hz: 608 samples, not 601 with a hop of 1)
@@ -138,7 +150,7 @@ MIN_HOP = 8
 
 
 def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shorten=SHORTEN,
-                  long_s=LONG_WINDOW_S):
+                  long_s=LONG_WINDOW_S, min_periods=MIN_PERIODS, ring_s=RING_WINDOW_S):
     """Per channel, a lock-in window over which its own tones are read without leakage from one
     another, not forced long by the block grid, and the hop that lets every channel have it.
 
@@ -153,7 +165,9 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
     channels' lock-ins, is the largest divisor of ``block`` dividing every window, so that each
     window still ends with the block; a window of whole periods that would need a hop under
     :data:`MIN_HOP` is not taken (least squares on the block grid, over at least one period of the
-    lowest tone, may be).
+    lowest tone, may be). A window of whole periods holding fewer than ``min_periods`` of the
+    lowest tone is then made the multiple of itself that holds them, if that is no longer than
+    ``ring_s`` (:data:`MIN_PERIODS`: 1 kHz over 192 samples, not 96).
 
     Parameters
     ----------
@@ -168,6 +182,9 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
         See :data:`SHORTEN`.
     long_s : float
         See :data:`LONG_WINDOW_S`.
+    min_periods : int
+    ring_s : float
+        See :data:`MIN_PERIODS` and :data:`RING_WINDOW_S`.
 
     Returns
     -------
@@ -180,6 +197,8 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
     >>> w, lsq, hop = short_windows([[80.0, 0.0], [235.0, 265.0], [120.0, 0.0]], 48000.0, 32)
     >>> w.tolist(), lsq.tolist(), hop
     ([600, 1600, 800], [False, True, False], 8)
+    >>> short_windows([[1000.0], [500.0], [1500.0]], 48000.0, 32)[0].tolist()
+    [192, 96, 128]
     """
     f = np.atleast_2d(np.asarray(freqs, dtype=float))
     block = int(block)
@@ -203,6 +222,10 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
             windows[c] = w
         else:
             lstsq[c] = False
+        if not lstsq[c] and windows[c] * row[0] < min_periods * fs:
+            longer = windows[c] * math.ceil(min_periods * fs / (windows[c] * row[0]) - 1e-9)
+            if longer <= ring_s * fs + 1e-9:
+                windows[c] = longer
     hop = math.gcd(block, *(int(x) for x in windows))
     return windows, lstsq, hop
 
