@@ -28,7 +28,6 @@ from rtctl.control._kernels import (
     LIMSEEN,
     LIVE_DRIVE,
     MAX_STEP,
-    MAX_UP,
     NALL,
     NOISE_Z,
     OBS_CH,
@@ -146,7 +145,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 col[TRIES] = 0.0
                 _pace_anew(col)
                 continue
-            step = min(max(step, 1 / MAX_STEP), MAX_UP)
+            step = min(max(step, 1 / MAX_STEP), MAX_STEP)
             if limited and step > 1:
                 step = 1.0
             up = 1.0 if step > 1 else -1.0

@@ -53,19 +53,14 @@ N_TARGET = 2
 OBS_CH, OBS_SLOT, BANK, CHANNEL = 0, 1, 2, 3
 N_INDEX = 4
 
-#: largest factor one correction may lower a command by (a wild estimate moves the drive by at
-#: most this; a finger landing on a lifted tip halves its tip per volt, which one step follows).
-#: Lowering by up to 16x (a lift-off multiplies a 1 kHz tip 5-20 fold) took the lifted beam's
-#: 1 kHz settle from 116-162 to 144-188 ms on bench/control_sweep.py's quick grid: the first step
-#: lands near the target while the free beam's ring still swings the estimates by +-50 %, and
-#: the corrections that follow chase that ring
-MAX_STEP = 4.0
-#: ... and raise it by: a finger landing on a 1 kHz tip cuts it 12-14 fold, which one correction
-#: then follows (with up to 4x, three corrections took 52-70 ms, each waiting for its rise, the
-#: window and two stretches). Only on estimates that reject the landing's ring (the observer's
-#: ``MIN_PERIODS``): on a window of 2 periods the ring biased them and the step of x1.66 that
-#: followed a x7 one rang +11.6 % over the target
-MAX_UP = 16.0
+#: largest factor one correction may change a command by, either way (a wild estimate moves the
+#: drive by at most this): a finger landing cuts a 1 kHz tip 12-14 fold and a lift-off multiplies
+#: it 5-20 fold, which one correction then follows (with up to 4x, two or three corrections took
+#: 52-96 ms, each waiting for its rise, the window and two stretches). Only on estimates that
+#: reject the event's ring (the observer's ``MIN_PERIODS``): over a window of 2 periods the ring
+#: biased them, the step of x1.66 that followed a x7 one rang +11.6 % over the target, and the
+#: lift-offs settled slower (the corrections after a 16-fold drop chased the free beam's ring)
+MAX_STEP = 16.0
 #: two successive stretches of fresh estimates whose means agree within this say the plant is
 #: steady (a window sliding over a change of the plant moves its estimate for a whole window;
 #: correcting on it would chase it). The loaded beam's ripple after a finger lands or a command
@@ -288,7 +283,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 state[TRIES, i] = 0.0  # on target: keep watching (this stretch compares with the next)
                 _pace_anew(state, i)
                 continue
-            step = min(max(step, 1.0 / MAX_STEP), MAX_UP)
+            step = min(max(step, 1.0 / MAX_STEP), MAX_STEP)
             if limited and step > 1.0:
                 step = 1.0  # the limiter holds this channel: no windup
             d = 1.0 if step > 1.0 else -1.0
