@@ -56,9 +56,9 @@ N_INDEX = 4
 #: largest factor one correction may change a command by, either way (a wild estimate moves the
 #: drive by at most this): a finger landing cuts a 1 kHz tip 12-14 fold and a lift-off multiplies
 #: it 5-20 fold, which one correction then follows (with up to 4x, two or three corrections took
-#: 52-96 ms, each waiting for its rise, the window and two stretches). Only on estimates that
-#: reject the event's ring (the observer's ``MIN_PERIODS``): over a window of 2 periods the ring
-#: biased them, the step of x1.66 that followed a x7 one rang +11.6 % over the target, and the
+#: 52-96 ms, each waiting for its rise, the window and two stretches). That took 1 kHz windows
+#: that reject the event's ring (the observer's ``MIN_PERIODS``): over 2 periods the ring biased
+#: the estimates, the step of x1.66 that followed a x7 one rang +11.6 % over the target, and the
 #: lift-offs settled slower (the corrections after a 16-fold drop chased the free beam's ring)
 MAX_STEP = 16.0
 #: two successive stretches of fresh estimates whose means agree within this say the plant is
