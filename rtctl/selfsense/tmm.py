@@ -63,6 +63,8 @@ __all__ = ["Laminate", "laminate_of", "Support", "TMMBeam", "krylov", "piece_mat
 _TERMS = 12  # series terms: |lam x^4| <= 1 leaves < 1/(48)! after 12
 #: Modes tabulated for the damping: exact modal damping on these, the rest quasi-static.
 N_MODAL = 6
+#: The undamped angular frequencies of the beams built so far (their first N_MODAL modes)
+_UNDAMPED: dict = {}
 #: LAPACK's banded solve with partial pivoting (stable), the routine scipy's solve_banded calls
 _zgbsv = scipy.linalg.get_lapack_funcs("gbsv", (np.zeros(1, dtype=complex),))
 
@@ -384,7 +386,15 @@ class TMMBeam:
         self.c_kv = 0.0
         self._wn = np.array([1.0])
         if self.zeta > 0.0:
-            self._wn = 2.0 * math.pi * self.natural_frequencies(N_MODAL)
+            # the same beam is built again and again (each observer design, each check of a
+            # scene): its undamped modes are a scan of the characteristic determinant, ~0.5 s
+            key = (lam, self.length, tuple(self.bounds.tolist()), self.support)
+            wn = _UNDAMPED.get(key)
+            if wn is None:
+                if len(_UNDAMPED) >= 64:
+                    _UNDAMPED.clear()
+                wn = _UNDAMPED[key] = 2.0 * math.pi * self.natural_frequencies(N_MODAL)
+            self._wn = wn.copy()
             self.c_kv = 2.0 * self.zeta / self._wn[0]
 
     def _c(self, omega):
