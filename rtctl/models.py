@@ -198,9 +198,10 @@ class Models:
         9th sit at 141.9 and 190.0 kHz, near 3 and 4 fs, and without them a closed loop held the
         tips 0.5-1.1 % off (within 0.14 % with them)."""
         n = int(group.beam.modes)
-        if n > 0:
-            return n
+        return n if n > 0 else self.auto_modes(group)
 
+    def auto_modes(self, group) -> int:
+        """The modes ``beam.modes = 0`` keeps for bimorph ``group`` (:meth:`plant_modes`)."""
         def build():
             import numpy as np
 

@@ -67,6 +67,7 @@ def check(scene) -> list[str]:
         key = f"actuator.{g.name}"
         if g.type == "bimorph":
             _beam(src, key, g.beam, warnings)
+            _sim_modes(scene, g, key, warnings)
         elif g.type == "pvdf":
             _plate(src, key, g.plate, warnings)
         elif g.type == "sma":
@@ -91,6 +92,46 @@ def _beam(src, key, b, warnings) -> None:
         warnings.append(f"{key}.beam.width = {b.width:g} m exceeds its length {L:g} m: it bends as a plate, up to "
                         f"{100 * (1 / (1 - BEAM_NU ** 2) - 1):.0f} % stiffer than the beam model says "
                         "(the beam model wants width <= length)")
+
+
+def _sim_modes(scene, g, key, warnings) -> None:
+    """A simulated plant cut to ``beam.modes`` modes that the observer reads off by more than
+    ``WARN`` (:mod:`rtctl.selfsense.truncation`): a warning, computed only where an observer
+    reads the simulated device."""
+    n = int(g.beam.modes)
+    c = scene.control
+    if n <= 0 or scene.io.backend != "sim" or not (c.observe or c.mode == "closed"):
+        return
+    from .models import Models
+
+    models = Models(scene)
+    full = models.auto_modes(g)
+    if full <= n:
+        return
+    err, f = _observer_error(scene, models, g, n)
+    if err > WARN:
+        kept = models.beam(g).modes()[0][n - 1]
+        warnings.append(f"{key}.beam.modes = {n} keeps the simulated beam's modes up to {kept / 1e3:.3g} kHz: "
+                        f"it leaves out modes near the drive's images at k fs +- f, which the observer's model "
+                        f"has, so the observer reads this simulated device {_pct(err)} off at {f:g} Hz (more if that "
+                        f"makes it misjudge the finger) and a closed loop holds its tips as far from their targets; "
+                        f"{key}.beam.modes = 0 keeps the {full} modes it needs")
+
+
+#: The last scene checked and its observer errors per (group, modes): a scene checked by the
+#: command line and again by the run it starts computes them once, and nothing piles up
+_ERRORS: list = [None, {}]
+
+
+def _observer_error(scene, models, g, n):
+    from .selfsense.truncation import observer_error
+
+    if _ERRORS[0] is not scene:
+        _ERRORS[:] = [scene, {}]
+    known = _ERRORS[1]
+    if (g.name, n) not in known:
+        known[(g.name, n)] = observer_error(models, g, n)
+    return known[(g.name, n)]
 
 
 def _plate(src, key, p, warnings) -> None:
