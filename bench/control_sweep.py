@@ -95,13 +95,14 @@ def overrides(device: dict, tones=TONES, calibrated=True, events=EVENTS, duratio
             *(f"io.mismatch.{k}={v:g}" for k, v in device.items())]
 
 
-def gains(device: dict, tones=TONES, events=EVENTS) -> list[list[np.ndarray]]:
+def gains(device: dict, tones=TONES, events=EVENTS, extra=()) -> list[list[np.ndarray]]:
     """Per segment, per tone: the device's true tip per commanded volt (um/V) at each of its
-    frequencies, under the finger of that segment."""
+    frequencies, under the finger of that segment (``extra``: the run's ``--set`` overrides, a
+    beam of another geometry, say)."""
     from rtctl import scene
     from rtctl.io.sim import build_group, device_models
 
-    key = json.dumps([device, tones, events])
+    key = json.dumps([device, tones, events, list(extra)])
     if key in _GAINS:  # the calibrated and the uncalibrated run of a device share them
         return _GAINS[key]
     states, held = [[]], {}
@@ -110,7 +111,7 @@ def gains(device: dict, tones=TONES, events=EVENTS) -> list[list[np.ndarray]]:
         states.append([f"{k}={_toml(v)}" for k, v in held.items()])
     out = []
     for st in states:
-        s = scene.load(SCENE, [*(f"io.mismatch.{k}={v:g}" for k, v in device.items()), "events=[]", *st])
+        s = scene.load(SCENE, [*extra, *(f"io.mismatch.{k}={v:g}" for k, v in device.items()), "events=[]", *st])
         plant = build_group(device_models(s), s.actuator[0], 0, s.timing.fs, s.timing.block).plant
         out.append([1e6 * np.abs(plant.frequency_response(_freqs(f, b))[:, 0]) for f, b, _ in tones])
     _GAINS[key] = out
@@ -138,7 +139,7 @@ def case(device: dict, calibrated: bool, tones=TONES, events=EVENTS, duration=DU
 
     s = scene.load(SCENE, [*overrides(device, tones, calibrated, events, duration), *extra])
     vmax = s.actuator[0].max_voltage
-    g = gains(device, tones, events)
+    g = gains(device, tones, events, extra)
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
         summary = run(s, out_dir=d, plot=False).summary
