@@ -109,7 +109,8 @@ def test_observe_stage_is_bitwise_the_old_kernel():
     st_new = ObserverStage(obs, 2, np.zeros((n_ch, BLOCK)), np.zeros((2 * n_ch, BLOCK)), np.zeros(n_ch))
     st_old = ObserverStage(ref, 2, np.zeros((n_ch, BLOCK)), np.zeros((2 * n_ch, BLOCK)), np.zeros(n_ch))
     # the old kernel's slot there held the currents' outputs; it reads one image load
-    old_args = dict({k: v for k, v in st_old.args.items() if k not in ("Hc", "pick", "resid", "lag")}, back=i_out)
+    picking = ("Hc", "pick", "resid", "contact", "lag")
+    old_args = dict({k: v for k, v in st_old.args.items() if k not in picking}, back=i_out)
     for b in range(n_blocks):
         sl = slice(b * BLOCK, (b + 1) * BLOCK)
         for st in (st_new, st_old):

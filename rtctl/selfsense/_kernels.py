@@ -15,6 +15,33 @@ ROW_MOMENT = 3
 #: A block votes against the candidates whose tip-moment residual (squared) is over this many
 #: times the least (twice the moment, or more): no vote where none is.
 DECISIVE = 0.25
+#: The estimate row of the tip force: a free tip (the finger lifted) pushes nothing.
+ROW_FORCE = 4
+#: The candidate without a finger reads a tip force. Over this share of the least force a finger
+#: of the candidates would put on that tip (``contact``: the smallest of their impedances at the
+#: tone, skin mass included), a finger is there: the free candidate loses the block's vote, whatever
+#: the moments say. Under :data:`FREE`, none is: the finger's candidates lose. In between (a finger
+#: whose stiffness and skin inertia nearly cancel at the tone, or a model far off) the moments vote.
+#: A beam with a mode near the drive's images (20 mm of PZT-5H: its 6th mode at 47 kHz) reads its
+#: tip through the images' load 14 % apart lifted or not, while its tip moments differ by less than
+#: a device off its model moves them: the moments alone took the images for a free tip's under
+#: the finger, and a finger's with it lifted.
+TOUCH = 0.2
+FREE = 0.005
+#: ... and only where the free candidate's tip is one the drive explains: no more than this many
+#: times the free beam's tip at that drive. A window of noise (a tone faded out, the drive at 0 V
+#: while the tips settle) reads a tip and a force of noise, which would vote at random.
+DRIVEN = 4.0
+#: The columns of ``contact`` (per channel and tone): the candidate without a finger (-1: none),
+#: the least squared impedance the others put on the tip (N^2/m^2), the free beam's squared tip
+#: per drive volt (m^2/V^2).
+C_FREE, C_Z2, C_G2 = 0, 1, 2
+N_CONTACT = 3
+#: Leaving a free tip, smoothed losses this close count as even, and the tie goes to the finger's
+#: candidate in use when the finger lifted (it comes back as it left). The 50 g and 200 g sets
+#: of a finger pin the tip alike, but not always alike enough: on a beam with a mode near the
+#: images they read its tip 60 % apart, and which one followed a lift-off was decided by a hair.
+TIE = 0.05
 #: A candidate load takes over when its smoothed loss of the blocks' votes (the least tip-moment
 #: residual wins) is under this share of the one in use's: two candidates that noise or the
 #: finger's sets split (50 g and 200 g of skin pin the tip alike) do not alternate.
@@ -29,7 +56,7 @@ _LANES = 8
 
 @kernel
 def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring,
-                     i_solve, u_out, back, H, Hc, pick, resid, lag, scale, est, wave, drive,
+                     i_solve, u_out, back, H, Hc, pick, resid, contact, lag, scale, est, wave, drive,
                      sensed):
     """One block: demodulate drive and currents, take each channel's image load (:func:`_pick_load`),
     apply the observer, rebuild the tip waveform.
@@ -52,8 +79,13 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
         The observer matrices of each candidate load at the images (``H`` is a copy of one).
     pick : ndarray int64, shape (n_ch,)
         The candidate each channel's ``H`` holds; updated.
-    resid : ndarray, shape (n_ch, 2, n_loads)
-        Each candidate's smoothed loss of the blocks' votes, and scratch; updated.
+    resid : ndarray, shape (n_ch, 3, n_loads)
+        Each candidate's smoothed loss of the blocks' votes, scratch, and (``resid[c, 2, 0]``) the
+        candidate with a finger in use when the free one took over; updated.
+    contact : ndarray, shape (n_ch, n_tones, N_CONTACT)
+        Per tone, for the force test of :func:`_pick_load`: the candidate without a finger (-1:
+        none), the least squared impedance the others put on the tip, the free beam's squared
+        tip per drive volt (``C_FREE``, ``C_Z2``, ``C_G2``).
     lag : ndarray, shape (n_ch,)
         Each channel's smoothing of the votes per block (``Observer.lag``).
     scale : ndarray, shape (n_ch,)
@@ -75,7 +107,7 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out)
     _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, sensed)
     if Hc.shape[2] > 1:
-        _pick_load(u_acc, i_acc, H, Hc, pick, resid, lag, scale)
+        _pick_load(u_acc, i_acc, H, Hc, pick, resid, contact, lag, scale)
     n_ch, n_t, n_est = est.shape[0], est.shape[1], est.shape[2]
     n_seg = H.shape[3] - 1
     status = 0
@@ -109,8 +141,9 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
 
 
 @kernel
-def _pick_load(u_acc, i_acc, H, Hc, pick, resid, lag, scale):
-    """Per channel, the candidate load at the images whose observer reads the smaller tip moment.
+def _pick_load(u_acc, i_acc, H, Hc, pick, resid, contact, lag, scale):
+    """Per channel, the candidate load at the images whose observer reads the tip as that load
+    would leave it: free of a moment, and free of a force where the candidate has no finger.
 
     The aliased images of the drive (2 fs +- f and beyond) see the tip's load at tens of kHz, where
     any skin in contact pins the tip and none leaves it free: a beam with a mode near an image
@@ -129,6 +162,13 @@ def _pick_load(u_acc, i_acc, H, Hc, pick, resid, lag, scale):
     use's; a silent or non-finite window changes nothing. The candidates' matrices differ in the
     drive's column alone (the images enter with the drive; :class:`~rtctl.selfsense.rt.Observer`
     checks it).
+
+    Before the moments, the force: the candidate without a finger (``contact[..., C_FREE]``) reads
+    a tip force ``F`` and tip ``x``; ``sum |F|^2`` over :data:`TOUCH` squared times ``sum Z^2 |x|^2``
+    (``C_Z2``: the least force a finger of the candidates would push that tip with) votes against
+    it, under :data:`FREE` squared times that against every other candidate, and in between the
+    moments vote; only where ``sum |x|^2`` is at most :data:`DRIVEN` squared times ``sum G^2 |D|^2``
+    (``C_G2``: the free beam's tip at the window's drive ``D``), a tip the drive explains.
     """
     n_ch, n_t = H.shape[0], H.shape[1]
     n_seg = H.shape[3] - 1
@@ -137,6 +177,11 @@ def _pick_load(u_acc, i_acc, H, Hc, pick, resid, lag, scale):
         sc = scale[c]
         for q in range(n_q):
             resid[c, 1, q] = 0.0
+        free = -1
+        f2 = 0.0   # the free candidate's squared tip force, summed over the tones
+        z2 = 0.0   # the least squared force a finger of the candidates would push that tip with
+        x2 = 0.0   # the free candidate's squared tip
+        g2 = 0.0   # the free beam's squared tip at the window's drive
         for k in range(n_t):
             # the currents' share of the moment is every candidate's (only the drive's column
             # holds the images), so it is summed once
@@ -159,31 +204,70 @@ def _pick_load(u_acc, i_acc, H, Hc, pick, resid, lag, scale):
                 tr = cr + hr * dr - hi * di
                 ti = ci + hr * di + hi * dr
                 resid[c, 1, q] += tr * tr + ti * ti
+            q = int(contact[c, k, C_FREE])
+            if q >= 0:
+                free = q
+                fr = Hc[c, k, q, ROW_FORCE, 0, 0] * dr - Hc[c, k, q, ROW_FORCE, 0, 1] * di
+                fi = Hc[c, k, q, ROW_FORCE, 0, 0] * di + Hc[c, k, q, ROW_FORCE, 0, 1] * dr
+                xr = Hc[c, k, q, 0, 0, 0] * dr - Hc[c, k, q, 0, 0, 1] * di
+                xi = Hc[c, k, q, 0, 0, 0] * di + Hc[c, k, q, 0, 0, 1] * dr
+                for j in range(n_seg):
+                    js = (c * n_seg + j) * n_t + k
+                    sr = sc * i_acc[_XR, js]
+                    si = sc * i_acc[_XI, js]
+                    fr += Hc[c, k, q, ROW_FORCE, 1 + j, 0] * sr - Hc[c, k, q, ROW_FORCE, 1 + j, 1] * si
+                    fi += Hc[c, k, q, ROW_FORCE, 1 + j, 0] * si + Hc[c, k, q, ROW_FORCE, 1 + j, 1] * sr
+                    xr += Hc[c, k, q, 0, 1 + j, 0] * sr - Hc[c, k, q, 0, 1 + j, 1] * si
+                    xi += Hc[c, k, q, 0, 1 + j, 0] * si + Hc[c, k, q, 0, 1 + j, 1] * sr
+                f2 += fr * fr + fi * fi
+                z2 += contact[c, k, C_Z2] * (xr * xr + xi * xi)
+                x2 += xr * xr + xi * xi
+                g2 += contact[c, k, C_G2] * (dr * dr + di * di)
         total = 0.0
         for q in range(n_q):
             total += resid[c, 1, q]
         if not (total > 0.0 and total < np.inf):
             continue
-        win = 0
-        for q in range(1, n_q):
-            if resid[c, 1, q] < resid[c, 1, win]:
-                win = q
-        worst = 0.0
-        for q in range(n_q):
-            worst = max(worst, resid[c, 1, q])
-        least = resid[c, 1, win]
-        if not least < DECISIVE * worst:
-            continue                               # no candidate stands out: no vote
+        known = free >= 0 and z2 > 0.0 and z2 < np.inf and f2 < np.inf and x2 <= DRIVEN * DRIVEN * g2
+        tie = -1
+        if known and f2 < FREE * FREE * z2:          # no finger: every finger's candidate loses
+            for q in range(n_q):
+                resid[c, 1, q] = 0.0 if q == free else 1.0
+        else:
+            # a finger: the free candidate loses, and the moments vote among the others
+            out = free if known and f2 > TOUCH * TOUCH * z2 else -1
+            win = -1
+            worst = 0.0
+            for q in range(n_q):
+                if q != out:
+                    if win < 0 or resid[c, 1, q] < resid[c, 1, win]:
+                        win = q
+                    worst = max(worst, resid[c, 1, q])
+            least = resid[c, 1, win]
+            decisive = least < DECISIVE * worst
+            if out < 0 and not decisive:
+                continue                               # no candidate stands out: no vote
+            for q in range(n_q):
+                resid[c, 1, q] = 1.0 if q == out or (decisive and least < DECISIVE * resid[c, 1, q]) else 0.0
+            # leaving the free tip on a vote that leaves the finger's candidates even: the one in
+            # use when the finger lifted
+            if out == free and pick[c] == free and not decisive:
+                last = int(resid[c, 2, 0])
+                if last != free and 0 <= last < n_q:
+                    tie = last
         a = lag[c]
         for q in range(n_q):
-            resid[c, 1, q] = 1.0 if least < DECISIVE * resid[c, 1, q] else 0.0
             resid[c, 0, q] += a * (resid[c, 1, q] - resid[c, 0, q])
         cur = pick[c]
         best = cur
         for q in range(n_q):
             if resid[c, 0, q] < resid[c, 0, best]:
                 best = q
+        if tie >= 0 and resid[c, 0, tie] <= resid[c, 0, best] + TIE:
+            best = tie
         if best != cur and resid[c, 0, best] < SWITCH * resid[c, 0, cur]:
+            if best == free:
+                resid[c, 2, 0] = cur  # the finger's candidate to come back to
             for k in range(n_t):
                 for e in range(H.shape[2]):
                     for j in range(n_seg + 1):

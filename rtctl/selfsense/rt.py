@@ -11,6 +11,7 @@ from rtctl.dsp.lockin import MAX_LSQ_COND, LockIn, lsq_gram
 from rtctl.errors import ModelError
 from rtctl.selfsense import _kernels
 from rtctl.selfsense.observer import EST_NAMES, MAX_COND, N_EST, design_many
+from rtctl.selfsense.tmm import _load_stiffness
 
 __all__ = ["Observer", "ObserverRows", "observer_process", "short_windows", "tone_window", "tone_windows"]
 
@@ -295,8 +296,13 @@ class Observer:
         Each candidate image load's (``image_load`` first, then ``image_loads``).
     pick : ndarray of int64, shape (n_channels,)
         The candidate each channel's ``H`` holds.
-    resid : ndarray, shape (n_channels, 2, n_loads)
-        Each candidate's smoothed loss of the blocks' votes (and the kernel's scratch).
+    resid : ndarray, shape (n_channels, 3, n_loads)
+        Each candidate's smoothed loss of the blocks' votes, the kernel's scratch, and the
+        candidate with a finger to come back to after a lift-off.
+    contact : ndarray, shape (n_channels, n_tones, 3)
+        Per tone, for the kernel's force test: the candidate without a finger (-1: none), the
+        squared least impedance the others put on the tip (N/m), and the squared tip per drive
+        volt of the free beam (m/V).
     lag : ndarray, shape (n_channels,)
         The votes' smoothing per block: ``block`` over half the channel's window, or over
         :data:`LOAD_LAG_S`, whichever is longer.
@@ -357,7 +363,7 @@ class Observer:
         self.Hc = np.zeros((n_ch, n_t, len(loads), N_EST, 1 + n_seg, 2))
         self.H = np.zeros((n_ch, n_t, N_EST, 1 + n_seg, 2))
         self.pick = np.zeros(n_ch, dtype=np.int64)
-        self.resid = np.zeros((n_ch, 2, len(loads)))
+        self.resid = np.zeros((n_ch, 3, len(loads)))
         self.lag = np.minimum(1.0, self.block / np.maximum(0.5 * self.windows, LOAD_LAG_S * self.fs))
         self.cond = np.full((n_ch, n_t), np.nan)
         # one design per distinct frequency and load, their images solved in one batch (channels
@@ -382,6 +388,22 @@ class Observer:
         if not np.array_equal(self.Hc[:, :, :, :, 1:], np.repeat(self.Hc[:, :, :1, :, 1:], len(loads), axis=2)):
             raise ModelError("observer designs for other image loads differ in the currents' columns")
         self.H[...] = self.Hc[:, :, 0]
+        # the free candidate's force test (``_kernels._pick_load``): at each tone, which candidate
+        # has no finger, the least squared impedance the others put on the tip, and the squared
+        # tip per drive volt of the free beam
+        self.contact = np.zeros((n_ch, n_t, _kernels.N_CONTACT))
+        self.contact[:, :, _kernels.C_FREE] = -1.0
+        free = [q for q, load in enumerate(loads) if load is None]
+        touch = [load for load in loads if load is not None]
+        if free and touch:
+            for fk in set(tones):
+                w = 2.0 * np.pi * fk
+                z2 = min(abs(_load_stiffness(load, w)) for load in touch) ** 2
+                g2 = abs(beam.response([fk], None)["tip"][0] * (frontend.voltage(fk) if frontend else 1.0)) ** 2
+                at = f == fk
+                self.contact[at, _kernels.C_FREE] = free[0]
+                self.contact[at, _kernels.C_Z2] = z2
+                self.contact[at, _kernels.C_G2] = g2
         try:
             self.lock_u = LockIn(n_ch, f, fs, self.windows, hop=self.hop, lstsq=self.lstsq)
             self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, np.repeat(self.windows, n_seg),
@@ -402,7 +424,7 @@ class Observer:
     def args(self) -> tuple:
         """Kernel arguments: ``observer_process(*args, drive, sensed)``."""
         return (*self.lock_u.args, *self.lock_i.args, self.u_out, self._back, self.H, self.Hc,
-                self.pick, self.resid, self.lag, self.scale, self.est, self.wave)
+                self.pick, self.resid, self.contact, self.lag, self.scale, self.est, self.wave)
 
     def process(self, drive, sensed) -> int:
         """Advance by one block.
@@ -471,7 +493,7 @@ class ObserverRows:
         The observer that computes them.
     first, n_channels : int
         ``c0`` and ``c1 - c0``.
-    freqs, windows, scale, H, Hc, pick, resid, lag, cond, est, wave, u_out
+    freqs, windows, scale, H, Hc, pick, resid, contact, lag, cond, est, wave, u_out
         The observer's, rows ``c0:c1`` (``u_out``: the drive's amplitude (peak, V) and phase (rad)
         per tone slot, shape (n_channels, n_tones, 2)).
     window : int
@@ -485,7 +507,8 @@ class ObserverRows:
         self.observer, self.first, self.n_channels = observer, int(c0), int(c1 - c0)
         for name in ("beam", "fs", "block", "frontend", "designs", "n_tones", "n_seg", "image_loads"):
             setattr(self, name, getattr(observer, name))
-        for name in ("freqs", "windows", "scale", "H", "Hc", "pick", "resid", "lag", "cond", "est", "wave"):
+        for name in ("freqs", "windows", "scale", "H", "Hc", "pick", "resid", "contact", "lag", "cond", "est",
+                     "wave"):
             setattr(self, name, getattr(observer, name)[rows])
         self.u_out = observer.u_out[rows]
         self.u_acc = observer.lock_u.acc

@@ -22,7 +22,7 @@ from .rt import ObserverRows, observer_process
 
 @kernel
 def observe_stage(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring, i_solve,
-                  u_out, back, H, Hc, pick, resid, lag, scale, est, wave, delay, head, out,
+                  u_out, back, H, Hc, pick, resid, contact, lag, scale, est, wave, delay, head, out,
                   sensed, amp):
     """Observe one block and push this block's drive into the delay ring.
 
@@ -49,7 +49,8 @@ def observe_stage(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, 
     """
     k = head[0]
     s = observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring, i_solve,
-                         u_out, back, H, Hc, pick, resid, lag, scale, est, wave, delay[k], sensed)
+                         u_out, back, H, Hc, pick, resid, contact, lag, scale, est, wave, delay[k],
+                         sensed)
     delay[k, :, :] = out
     head[0] = (k + 1) % delay.shape[0]
     for c in range(est.shape[0]):
@@ -65,8 +66,8 @@ class ObserverStage:
     reset, for a rig to wrap into its stage list."""
 
     ARG_NAMES = ("u_ref", "u_pend", "u_chan", "u_acc", "u_ring", "u_solve", "i_ref", "i_pend", "i_chan", "i_acc",
-                 "i_ring", "i_solve", "u_out", "back", "H", "Hc", "pick", "resid", "lag", "scale", "est", "wave",
-                 "delay", "head", "out", "sensed", "amp")
+                 "i_ring", "i_solve", "u_out", "back", "H", "Hc", "pick", "resid", "contact", "lag", "scale", "est",
+                 "wave", "delay", "head", "out", "sensed", "amp")
 
     def __init__(self, observer, latency_blocks: int, out, sensed, amp):
         self.observer = observer
