@@ -36,11 +36,11 @@ from rtctl.selfsense.stage import observe_stage  # noqa: E402
 
 @njit(cache=True)
 def rep_stage(n, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18, a19,
-              a20, a21, a22, a23, a24, a25, a26):
+              a20, a21, a22, a23, a24, a25, a26, a27):
     s = 0
     for _ in range(n):
         s |= observe_stage(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18,
-                           a19, a20, a21, a22, a23, a24, a25, a26)
+                           a19, a20, a21, a22, a23, a24, a25, a26, a27)
     return s
 
 
@@ -191,7 +191,7 @@ def timed(fn, args, calls, repeats):
 def twin_args(st):
     """The stage's arguments, copied, for the twin (whose scratch slot held the currents' outputs)."""
     a = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in st.args.items()  # the rig keeps its own
-         if k not in ("Hc", "pick", "resid", "lag")}  # the twin reads one image load
+         if k not in ("Hc", "pick", "resid", "contact", "lag")}  # the twin reads one image load
     a["back"] = np.zeros((a["i_acc"].shape[1] // a["est"].shape[1], a["est"].shape[1], 2))
     return a
 
