@@ -285,3 +285,72 @@ def test_a_free_tip_pushes_no_force_where_the_moments_cannot_tell(truth):
             sk._pick_load(u_acc, i_acc, H, obs.Hc, pick, resid, obs.contact, lag, scale)
         for c in range(n_ch):
             assert abs(reads[c, pick[c]]) < 0.01, (truth, start, c, pick[c], reads[c])
+
+
+def _two_sets_and_a_free_tip():
+    """A channel of one tone whose three candidates (a finger set, the free tip, another set) read
+    the same moment (the moments never decide) and a tip of 1 per unit drive; the free candidate
+    reads the second current as the tip force; the least finger impedance is 1 and the free beam's
+    tip per volt 1. Returns the kernel's arguments and a function setting the window's drive and
+    force."""
+    n_ch, n_t, n_seg, n_q = 1, 1, 2, 3
+    Hc = np.zeros((n_ch, n_t, n_q, len(EST_NAMES), 1 + n_seg, 2))
+    Hc[..., sk.ROW_MOMENT, 0, 0] = 0.5                # every candidate reads the same moment
+    Hc[..., 0, 1, 0] = 1.0                            # the tip: the first current
+    Hc[:, :, 1, sk.ROW_FORCE, 2, 0] = 1.0             # the free candidate's force: the second current
+    contact = np.zeros((n_ch, n_t, sk.N_CONTACT))
+    contact[..., sk.C_FREE], contact[..., sk.C_Z2], contact[..., sk.C_G2] = 1, 1.0, 1.0
+    u_acc, i_acc = np.zeros((16, n_ch * n_t)), np.zeros((16, n_ch * n_seg * n_t))
+
+    def window(drive, force, tip=None):
+        u_acc[sk._XR] = drive
+        i_acc[sk._XR, 0] = drive if tip is None else tip
+        i_acc[sk._XR, 1] = force
+
+    return (u_acc, i_acc, Hc, contact, np.full(n_ch, 0.2), np.ones(n_ch)), window
+
+
+def _settle(args, pick, blocks=60):
+    u_acc, i_acc, Hc, contact, lag, scale = args
+    pick = np.array([pick], dtype=np.int64)
+    H = np.ascontiguousarray(Hc[np.arange(1), :, pick])
+    resid = np.zeros((1, 3, Hc.shape[2]))
+    for _ in range(blocks):
+        sk._pick_load(u_acc, i_acc, H, Hc, pick, resid, contact, lag, scale)
+    assert np.array_equal(H, Hc[:, :, pick[0]])
+    return int(pick[0])
+
+
+@pytest.mark.parametrize("drive,force,start,want", [
+    (1.0, 0.3, 1, 0),     # a finger 3 times softer than the softest set still pushes: it is there
+    (1.0, 1e-4, 0, 1),    # a free tip reads a force of noise and model error, 1e-4 of a finger's
+    (1.0, 0.05, 1, 1),    # in between (a finger's stiffness and skin inertia nearly cancelling):
+    (1.0, 0.05, 2, 2),    # the moments decide, and here they cannot: nothing moves
+    (0.0, 1.0, 1, 1),     # no drive: a tip and a force of noise vote for nothing
+    (1e-3, 1.0, 1, 1),    # a tip 1000 times what the drive moves the free beam by: noise
+    (1e-3, 1e-7, 0, 0),
+    (0.3, 0.3, 1, 0),     # a tip 3 times the free beam's (a finger near its loaded mode): driven
+])
+def test_the_free_tips_force_decides_only_where_it_is_clear(drive, force, start, want):
+    args, window = _two_sets_and_a_free_tip()
+    window(drive, force, tip=1.0)
+    assert _settle(args, start) == want
+
+
+def test_a_returning_finger_gets_the_set_it_left_with():
+    """Under the finger the free candidate loses and the pick stays on the set in use (the
+    second); lifted, the free candidate takes over; when the finger comes back the set it left
+    with takes over again, not the first in order."""
+    args, window = _two_sets_and_a_free_tip()
+    u_acc, i_acc, Hc, contact, lag, scale = args
+    pick = np.array([2], dtype=np.int64)
+    H = np.ascontiguousarray(Hc[np.arange(1), :, pick])
+    resid = np.zeros((1, 3, Hc.shape[2]))
+    seen = []
+    for force in (1.0, 0.0, 1.0):                     # touching, lifted, touching again
+        window(1.0, force)
+        for _ in range(60):
+            sk._pick_load(u_acc, i_acc, H, Hc, pick, resid, contact, lag, scale)
+        seen.append(int(pick[0]))
+    assert seen == [2, 1, 2]
+    assert np.array_equal(H, Hc[:, :, 2])
