@@ -301,8 +301,8 @@ class Observer:
         candidate with a finger to come back to after a lift-off.
     contact : ndarray, shape (n_channels, n_tones, 3)
         Per tone, for the kernel's force test: the candidate without a finger (-1: none), the
-        squared least impedance the others put on the tip (N/m), and the squared tip per drive
-        volt of the free beam (m/V).
+        least impedance the others put on the tip, squared (N^2/m^2), and the free beam's tip per
+        drive volt, squared (m^2/V^2).
     lag : ndarray, shape (n_channels,)
         The votes' smoothing per block: ``block`` over half the channel's window, or over
         :data:`LOAD_LAG_S`, whichever is longer.

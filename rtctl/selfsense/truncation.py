@@ -69,6 +69,8 @@ def observer_error(models, group, n_modes: int, freqs_hz=FREQS_HZ) -> tuple[floa
     """The largest of :func:`observer_errors`' magnitudes, under the scene's finger and lifted,
     and the frequency it is at (Hz)."""
     freqs = [float(f) for f in freqs_hz if 0.0 < f < models.scene.timing.fs / 2]
+    if not freqs:
+        return 0.0, 0.0
     lifts = (False, True) if models.finger(group) is not None else (True,)
     err = np.abs([observer_errors(models, group, n_modes, freqs, lifted) for lifted in lifts]).max(axis=0)
     k = int(np.argmax(err))
