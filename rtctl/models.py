@@ -395,14 +395,23 @@ class Models:
         ``hop`` and ``lstsq`` as for :class:`~rtctl.selfsense.rt.Observer` (one window for all
         channels or one per channel; default :func:`~rtctl.selfsense.rt.block_window`). An
         ill-conditioned tone is refused (ModelError)."""
-        from .selfsense.frontend import FrontEnd
         from .selfsense.rt import Observer
-        from .selfsense.tmm import TMMBeam
 
-        front = FrontEnd(fs, group.amplifier.bandwidth, group.sense.aa_cutoff, group.sense.aa_order)
-        return Observer(TMMBeam.from_fe(self.beam(group)), freqs, fs, block, front,
+        return Observer(self.observer_beam(group), freqs, fs, block, self.frontend(group, fs),
                         window=window, image_load=self.finger(group), max_cond=OBSERVER_MAX_COND, wave=wave,
                         hop=hop, lstsq=lstsq, image_loads=self.other_fingers(group))
+
+    def observer_beam(self, group):
+        """The transfer-matrix twin of ``group``'s beam the observer is designed on."""
+        from .selfsense.tmm import TMMBeam
+
+        return TMMBeam.from_fe(self.beam(group))
+
+    def frontend(self, group, fs: float):
+        """The drive and sense chain the observer of bimorph ``group`` reads through at ``fs``."""
+        from .selfsense.frontend import FrontEnd
+
+        return FrontEnd(fs, group.amplifier.bandwidth, group.sense.aa_cutoff, group.sense.aa_order)
 
     def other_fingers(self, group) -> list:
         """The loads ``group``'s tips may see besides :meth:`finger`: none (the finger lifted) and

@@ -38,9 +38,7 @@ def observer_errors(models, group, n_modes: int, freqs_hz=FREQS_HZ, lifted: bool
     from ..plant.bimorph import BimorphPlant
     from ..plant.frontend import Amplifier, CurrentSense
     from ..plant.lti import c2d
-    from .frontend import FrontEnd
     from .observer import design_many
-    from .tmm import TMMBeam
 
     fs = float(models.scene.timing.fs)
     freqs = [float(f) for f in freqs_hz]
@@ -53,8 +51,8 @@ def observer_errors(models, group, n_modes: int, freqs_hz=FREQS_HZ, lifted: bool
     plant = BimorphPlant(beam, Amplifier(group.amplifier.bandwidth), sense, load, n_modes=n_modes)
     d = c2d(plant.sys, 1.0 / fs, "zoh")
     sensed = [i for i, name in enumerate(plant.OUTPUT_NAMES) if name.startswith("sensed")]
-    front = FrontEnd(fs, group.amplifier.bandwidth, s.aa_cutoff, s.aa_order)
-    designs = design_many(TMMBeam.from_fe(beam), freqs, front, image_load=load, max_cond=OBSERVER_MAX_COND)
+    designs = design_many(models.observer_beam(group), freqs, models.frontend(group, fs), image_load=load,
+                          max_cond=OBSERVER_MAX_COND)
     eye = np.eye(d.A.shape[0])
     out = np.empty(len(freqs))
     for k, f in enumerate(freqs):
