@@ -353,6 +353,12 @@ class Models:
     def ring_time(self, group) -> float:
         """Time constant of the slowest decaying oscillation of a bimorph group under its finger
         (the loaded modes' ``1 / sigma``), s: how long a switch-on transient rings."""
+        _, tau = self.loaded_modes(group, self.finger(group))
+        return float(tau.max()) if tau.size else 0.0
+
+    def loaded_modes(self, group, finger):
+        """``(f Hz, tau s)`` of the decaying oscillations of a bimorph group's simulated plant
+        under ``finger`` (a load, or None: lifted), amplifier and sense chain included."""
         def build():
             import numpy as np
 
@@ -360,13 +366,28 @@ class Models:
             from .plant.frontend import Amplifier, CurrentSense
 
             plant = BimorphPlant(self.beam(group), Amplifier(group.amplifier.bandwidth),
-                                 CurrentSense(group.sense.shunt, group.sense.aa_cutoff), self.finger(group),
+                                 CurrentSense(group.sense.shunt, group.sense.aa_cutoff), finger,
                                  n_modes=self.plant_modes(group))
             ev = np.linalg.eigvals(plant.sys.A)
-            osc = ev[(np.abs(ev.imag) > 1e-6 * np.abs(ev)) & (ev.real < 0)]
-            return float(np.max(-1.0 / osc.real)) if osc.size else 0.0
+            osc = ev[(ev.imag > 1e-6 * np.abs(ev)) & (ev.real < 0)]
+            return osc.imag / (2.0 * np.pi), -1.0 / osc.real
 
-        return self._get(("ring", group.name), build)
+        return self._get(("modes", group.name, finger), build)
+
+    def nearest_modes(self, group, freqs):
+        """Per frequency (Hz), the loaded mode of bimorph ``group`` nearest to it under any load
+        its observer may read (:meth:`finger`, :meth:`other_fingers`): ``(|f_mode - f| Hz,
+        tau s)``, each of the shape of ``freqs`` (inf and 0 where the plant has no such mode)."""
+        import numpy as np
+
+        f = np.asarray(freqs, dtype=float)
+        loads = [self.finger(group), *self.other_fingers(group)]
+        modes = [self.loaded_modes(group, load) for load in loads]
+        fm, tm = (np.concatenate(x) for x in zip(*modes))
+        if not fm.size:
+            return np.full(f.shape, np.inf), np.zeros(f.shape)
+        near = np.abs(fm - f[..., None]).argmin(axis=-1)
+        return np.abs(fm[near] - f), tm[near]
 
     def drive_load(self, group) -> tuple[float, float]:
         """``(capacitance F, resistance ohm)`` a channel of ``group`` drives (one of them is 0): what

@@ -1,6 +1,9 @@
 """Naive twin of rtctl.control._kernels.amplitude_control: the same rules, written plainly."""
 
+import cmath
 import math
+
+import numpy as np
 
 from rtctl.control._kernels import (
     A0,
@@ -15,6 +18,7 @@ from rtctl.control._kernels import (
     DEADBAND,
     ENABLE,
     EST,
+    EXT_GAIN,
     FAR,
     FF,
     FROZEN,
@@ -30,10 +34,16 @@ from rtctl.control._kernels import (
     MAX_STEP,
     NALL,
     NOISE_Z,
+    NSTR,
     OBS_CH,
     OBS_SLOT,
     ON,
     OUT,
+    P1I,
+    P1R,
+    P1V,
+    P2I,
+    P2R,
     PATIENCE,
     REF,
     REFV,
@@ -47,12 +57,20 @@ from rtctl.control._kernels import (
     RUN,
     SAT,
     SCATTER,
+    SLOW,
+    SPREV,
     SQ,
     START,
+    STEPPED,
+    STILL,
     SUM,
+    SUMI,
+    SUMR,
     TARGET,
     TPREV,
     TRIES,
+    TURN,
+    W_MAX,
     WAIT,
     WARM,
 )
@@ -64,13 +82,40 @@ def _pace_anew(col):
     col[HOLD], col[LASTDIR], col[REVS] = col[HOLD0], 0.0, 0.0
 
 
+def _watch_anew(col):
+    col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+    col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = 0.0
+
+
+def _others_wait(state, index, stepped):
+    """Every other playing tone read on the channel of a tone whose drive stepped waits a window
+    afresh."""
+    for i in np.flatnonzero(stepped):
+        for k in range(state.shape[1]):
+            if k != i and index[OBS_CH, k] == index[OBS_CH, i] and state[ON, k]:
+                state[WAIT, k] = max(state[WAIT, k], state[WARM, k])
+                _watch_anew(state[:, k])
+
+
+def _ring_end(p1, p2, a, v1, v2, v3):
+    """Aitken's delta-squared on three complex stretch means, or -1 (no clear decaying ring)."""
+    d1, d2 = p2 - p1, a - p2
+    if abs(d1) > NOISE_Z * math.sqrt(v2 + v1) and abs(d2) > NOISE_Z * math.sqrt(v3 + v2) and abs(d2) <= W_MAX * abs(d1):
+        w = d2 / d1
+        if abs(w / (1 - w)) <= EXT_GAIN and abs(math.sin(cmath.phase(w))) >= TURN:
+            return abs(a + w * d2 / (1 - w))
+    return -1.0
+
+
 def amplitude_control(est, drive_est, index, target, state, pending, lim_counts, ramp):
     status = 0
+    stepped = np.zeros(state.shape[1], dtype=bool)
     for i in range(state.shape[1]):
         b = index[BANK, i]
         col = state[:, i]
         if target[ENABLE, i] == 0:
             if col[ON]:
+                stepped[i] = True
                 col[ON] = col[CMD] = col[OUT] = 0.0
                 pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = 0.0, ramp, 1.0
             continue
@@ -94,14 +139,14 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if not starting and r != col[TPREV] and col[GLIVE] > 0:
             a = r / col[GLIVE]
             col[TPREV], col[WAIT] = r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
-            col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+            _watch_anew(col)
             _pace_anew(col)
         elif starting or r != col[TPREV]:
             a = r / col[GHAT] if col[GHAT] > 0 else START * r * col[FF]
             if starting:
                 col[RISEK], col[A0], rising = 0.0, 0.0, col[RISE] > 0
             col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
-            col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+            _watch_anew(col)
             _pace_anew(col)
         elif col[WAIT] > 0:
             col[WAIT] -= 1
@@ -113,6 +158,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             if not (0 < y < math.inf and r > 0):
                 col[FROZEN] = 1.0
                 col[REF] = col[SUM] = col[SQ] = col[RUN] = col[ALL] = col[NALL] = 0.0
+                col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             col[FROZEN] = 0.0
@@ -120,6 +166,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             col[TRIES] += 1
             col[SUM] += y
             col[SQ] += y * y
+            col[SUMR] += est[c, j, 0, 0]
+            col[SUMI] += est[c, j, 0, 1]
             col[RUN] += 1
             col[ALL] += y
             col[NALL] += 1
@@ -127,13 +175,31 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 continue
             mean, prev, prev_var = col[SUM] / col[RUN], col[REF], col[REFV]
             var = max(col[SQ] / col[RUN] - mean * mean, 0.0) / col[RUN]
+            phasor = complex(col[SUMR], col[SUMI]) / col[RUN]
+            p1, p2 = complex(col[P1R], col[P1I]), complex(col[P2R], col[P2I])
+            end, moving = -1.0, False
+            if col[SLOW]:
+                end = _ring_end(p1, p2, phasor, col[P1V], prev_var, var) if col[NSTR] >= 2 else -1.0
+                moving = col[NSTR] >= 1 and abs(phasor - p2) > max(STILL * mean, NOISE_Z * math.sqrt(var + prev_var))
+            young, end_before = col[NSTR] < 2, col[SPREV]
+            col[SPREV] = max(end, 0.0)
+            col[P1R], col[P1I], col[P1V], col[P2R], col[P2I] = p2.real, p2.imag, prev_var, phasor.real, phasor.imag
+            col[NSTR] += 1
+            col[SUMR] = col[SUMI] = 0.0
             if prev > 0 and abs(mean / prev - 1) > CHANGED:
                 _pace_anew(col)
             col[REF], col[REFV], col[SUM], col[SQ], col[RUN] = mean, var, 0.0, 0.0, 0.0
+            agree = prev > 0 and abs(mean / prev - 1) <= AGREE
             far_agree = (col[SCATTER] != 0 and abs(r / mean - 1) > FAR
                          and abs(mean - prev) <= NOISE_Z * math.sqrt(var + prev_var))
-            if prev > 0 and (abs(mean / prev - 1) <= AGREE or far_agree):
-                if abs(r / mean - 1) <= AGREE:
+            if agree and moving and end < 0 and young:
+                continue
+            if agree and moving and end > 0:
+                mean, g = end, col[GAIN]
+            elif end > 0 and end_before > 0 and abs(end / end_before - 1) <= AGREE:
+                mean, g = end, col[GAIN]
+            elif agree or (prev > 0 and far_agree):
+                if abs(r / mean - 1) <= AGREE and not moving:
                     mean = col[ALL] / col[NALL]
                 g = col[GAIN]
             elif col[TRIES] >= PATIENCE * (col[WARM] + 2 * col[HOLD]):
@@ -161,7 +227,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                     col[REVS] = 0.0
                 col[LASTDIR] = up
             a *= step
-            col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
+            _watch_anew(col)
             col[WAIT] = col[WARM]
             if not 1 / BIG_STEP <= step <= BIG_STEP and col[RISE] > 1:
                 col[A0], col[RISEK], rising = col[OUT], 0.0, True
@@ -177,6 +243,9 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if rising:
             col[RISEK] += 1
             a = col[A0] + (a - col[A0]) * (1 - math.cos(math.pi * col[RISEK] / col[RISE])) / 2
+        stepped[i] = abs(a - col[OUT]) > AGREE * col[OUT]
         col[OUT] = a
         pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = a, ramp, 1.0
+    _others_wait(state, index, stepped)
+    state[STEPPED] = stepped
     return status

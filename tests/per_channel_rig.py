@@ -41,8 +41,10 @@ class PerChannelRig(Rig):
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
             rise = int(round(scene.control.rise_s * self.fs / self.block))
+            beat, tau = self.models.nearest_modes(g, f)
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
-                                      -(-obs.window // self.block), self.block, ring, rise)
+                                      -(-obs.window // self.block), self.block, ring, rise,
+                                      (beat * self.block / self.fs, tau * self.fs / self.block))
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)

@@ -15,13 +15,19 @@ from rtctl.control._kernels import (
     HOLD0,
     HOLDMAX,
     MAX_STEP,
+    NSTR,
+    ON,
+    P1V,
     REF,
     REFV,
+    RUN,
     SAT,
+    SLOW,
     START,
     TARGET,
     TRIES,
     WAIT,
+    WARM,
 )
 from rtctl.dsp._kernels import N_PEND, P_AMP
 from rtctl.safety import CONTROL_FROZEN, CONTROL_SATURATED
@@ -33,12 +39,13 @@ class Loop:
     """Controllers of ``n`` tones on a plant that is a gain per tone (tip m per V), seen by an
     observer as the mean over ``window`` blocks of the tip ``latency`` blocks earlier."""
 
-    def __init__(self, plant_gain, model_gain, targets, amax=150.0, latency=1, window=6, ring=0):
+    def __init__(self, plant_gain, model_gain, targets, amax=150.0, latency=1, window=6, ring=0, beside=None):
         n = len(targets)
         self.n, self.latency, self.window = n, latency, window
         self.plant = np.asarray(plant_gain, dtype=float)
         self.ctl = AmplitudeController(np.arange(n), np.zeros(n, int), np.arange(n), np.arange(n),
-                                       model_gain, np.full(n, amax), targets, latency, window, BLOCK, ring)
+                                       model_gain, np.full(n, amax), targets, latency, window, BLOCK, ring,
+                                       beside=beside)
         self.est = np.zeros((n, 1, 9, 2))
         self.pending = np.zeros((N_PEND, n))
         self.lim = np.zeros((3, n), dtype=np.int64)
@@ -94,11 +101,15 @@ def test_any_model_gain_error_is_removed_without_crossing_the_target(error):
         assert truth.max() <= target * (1 + 1e-12)
 
 
-def test_a_plant_change_is_corrected_once_the_window_has_passed_it():
+@pytest.mark.parametrize("beside", [None, (0.005, 48.0)])
+def test_a_plant_change_is_corrected_once_the_window_has_passed_it(beside):
     """The finger presses harder (40 % less tip per volt): while the observer's window slides
     over the change its estimate moves, and the loop waits; the one correction comes once the
-    window holds nothing older than the change, and lands exactly on the target from below."""
-    loop = Loop([1e-7], [1e-7], [5e-6], window=24)
+    window holds nothing older than the change, and lands exactly on the target from below.
+    The same where a slow ring beside the tone is looked for (``beside``): the estimate's line
+    that stops within a stretch is no ring to extrapolate."""
+    loop = Loop([1e-7], [1e-7], [5e-6], window=24, ring=48, beside=beside)
+    assert loop.ctl.state[SLOW, 0] == (beside is not None)
     loop.run(200)
     np.testing.assert_allclose(loop.truth[-1][0], 5e-6, rtol=1e-12)
     k0 = len(loop.truth)
@@ -159,15 +170,21 @@ def test_disabling_a_tone_ramps_it_to_zero():
 def test_kernel_matches_its_naive_twin(seed):
     rng = np.random.default_rng(seed)
     n = 7
-    ctl = AmplitudeController(np.arange(n), np.zeros(n, int), rng.permutation(n), rng.integers(0, 3, n),
-                              rng.uniform(1e-8, 1e-6, n), rng.uniform(10, 150, n), rng.uniform(1e-7, 5e-5, n),
-                              1, 3, BLOCK, ring=(0, 30, 60, 100)[seed], rise=(0, 1, 5, 12)[seed])
+    # tones 0-2 read on one observer channel, 3-4 on another (a correction makes the others wait)
+    ctl = AmplitudeController(np.array([0, 0, 0, 3, 3, 5, 6]), np.zeros(n, int), rng.permutation(n),
+                              rng.integers(0, 3, n), rng.uniform(1e-8, 1e-6, n), rng.uniform(10, 150, n),
+                              rng.uniform(1e-7, 5e-5, n), 1, 3, BLOCK, ring=(0, 30, 60, 100)[seed],
+                              rise=(0, 1, 5, 12)[seed],
+                              beside=(np.r_[rng.uniform(0, 0.1, 5), 0.01, 0.01], np.r_[rng.uniform(0, 40, 5), 40, 40]))
+    ctl.target[ENABLE, 5:] = 1.0  # the ringing tones play from the start
     twin = [a.copy() for a in (ctl.index, ctl.target, ctl.state)]
     pend_k, pend_n = np.zeros((N_PEND, n)), np.zeros((N_PEND, n))
     lim = np.zeros((3, 3), dtype=np.int64)
     scale = 0.0  # the largest squared stretch mean so far
     grown = 0  # blocks in which some stretch had grown past its design (the hunting rule acted)
+    ends = waited = 0  # corrections on a ring's extrapolated end; blocks in which a tone waited for another's
     side, last_cmd = np.ones(n), ctl.state[CMD].copy()
+    since, last_ring = np.zeros(n), ctl.state[CMD].copy()
     for k in range(900):
         est = np.zeros((n, 1, 9, 2))
         est[:, 0, 0] = rng.normal(0, 2e-5, (n, 2))
@@ -178,6 +195,14 @@ def test_kernel_matches_its_naive_twin(seed):
         near = np.full(n, k >= 300)
         est[near, 0, 0, 0] = (ctl.target[TARGET] * (1.0 + 0.08 * side) * rng.uniform(0.995, 1.005, n))[near]
         est[near, 0, 0, 1] = 0.0
+        # tones 5 and 6 ring beside a loaded mode after each command (where they are not
+        # frozen or aimed near the target above): a phasor that turns and decays towards 0.9 of
+        # the target
+        since[ctl.state[CMD] != last_ring] = k
+        last_ring = ctl.state[CMD].copy()
+        if k < 300:
+            ring = ctl.target[TARGET, 5:] * (0.9 + 0.3 * (0.9 * np.exp(0.1j)) ** (k - since[5:]))
+            est[5:, 0, 0, 0], est[5:, 0, 0, 1] = ring.real, ring.imag
         drive_est = np.zeros((n, 1, 2))
         drive_est[:, 0, 0] = rng.uniform(0, 150, n) * (rng.uniform(size=n) < 0.8)
         if k % 13 == 0 and k < 300:
@@ -190,18 +215,25 @@ def test_kernel_matches_its_naive_twin(seed):
             j = rng.integers(n)
             ctl.target[ENABLE, j] = twin[1][ENABLE, j] = float(rng.integers(2))
             ctl.target[TARGET, j] = twin[1][TARGET, j] = rng.uniform(1e-7, 5e-5)
+        wait, cmd = ctl.state[WAIT].copy(), ctl.state[CMD].copy()
         sk = amplitude_control(est, drive_est, ctl.index, ctl.target, ctl.state, pend_k, lim, float(BLOCK))
         sn = naive(est, drive_est, twin[0], twin[1], twin[2], pend_n, lim, float(BLOCK))
         assert sk == sn
-        rows = np.arange(ctl.state.shape[0]) != REFV
+        rows = ~np.isin(np.arange(ctl.state.shape[0]), (REFV, P1V))
         np.testing.assert_allclose(ctl.state[rows], twin[2][rows], rtol=1e-12, atol=0)
         # a variance by subtraction (mean square less squared mean) is good to rounding of the
         # squares, not of itself
         scale = max(scale, np.max(twin[2][REF]) ** 2)
-        np.testing.assert_allclose(ctl.state[REFV], twin[2][REFV], rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(ctl.state[[REFV, P1V]], twin[2][[REFV, P1V]], rtol=0, atol=1e-12 * scale)
         np.testing.assert_allclose(pend_k, pend_n, rtol=1e-12, atol=0)
         grown += bool(np.any(ctl.state[HOLD] > ctl.state[HOLD0]))
+        # a correction on a ring's extrapolated end lands the ringing tones exactly on the ring's
+        # end, 0.9 of the target: the command grows by 1 / 0.9
+        ends += np.count_nonzero(np.isclose(ctl.state[CMD, 5:] / np.maximum(cmd[5:], 1e-300), 1 / 0.9,
+                                            rtol=1e-9, atol=0))
+        waited += bool(np.any((ctl.state[WAIT] > wait) & (ctl.state[CMD] == cmd)))  # another tone's change
     assert grown > 0 or seed == 0  # seed 0 has no ring: its stretches cannot grow
+    assert ends > 0 and waited > 0, (ends, waited)
 
 
 def test_a_ripple_is_averaged_out_not_chased():
@@ -453,3 +485,169 @@ def test_a_window_sliding_over_a_change_never_agrees_within_its_scatter():
     changed = np.flatnonzero(np.diff(cmds)) + 1
     assert changed[0] == 6 * h, changed  # the second stretch of the settled value
     np.testing.assert_allclose(cmds[6 * h] / cmds[0], 10.0, rtol=1e-12)  # 10x, on the settled value
+
+
+def _ring_beside(beside, n=400, model=1.3e-7):
+    """A tone beside a loaded mode: the tip phasor follows its drive through one lightly damped
+    mode, ``y[k+1] = z y[k] + (1 - z) G a[k+1]`` (after a step of drive it turns and decays onto
+    ``G a`` by ``z`` per block: here 0.0095 turns and 3 % per block, a 33-block time constant),
+    seen through a 3-block window one block late. Returns the commands and the tip amplitudes."""
+    z = 0.97 * np.exp(0.06j)
+    g, target, window, latency = 1e-7, 5e-6, 3, 1
+    ctl = AmplitudeController([0], [0], [0], [0], [model], [150.0], [target], latency, window, BLOCK, ring=33,
+                              beside=beside)
+    ctl.target[ENABLE] = 1.0
+    est, drive_est = np.zeros((1, 1, 9, 2)), np.zeros((1, 1, 2))
+    pending, lim = np.zeros((N_PEND, 1)), np.zeros((3, 1), dtype=np.int64)
+    y, tips, cmds = 0j, [], []
+    for _ in range(n):
+        y = z * y + (1 - z) * g * pending[P_AMP, 0]
+        tips.append(y)
+        seen = np.mean(tips[-latency - window:len(tips) - latency]) if len(tips) > latency else 0j
+        est[0, 0, 0] = seen.real, seen.imag
+        drive_est[0, 0, 0] = pending[P_AMP, 0]
+        amplitude_control(est, drive_est, ctl.index, ctl.target, ctl.state, pending, lim, float(BLOCK))
+        cmds.append(ctl.state[CMD, 0])
+    return np.array(cmds), np.abs(tips)
+
+
+def test_a_ring_beside_a_loaded_mode_is_corrected_on_its_end():
+    """Stretches of 5 blocks against a ring that turns a twentieth of a beat per stretch: two
+    stretches agree in amplitude on a point of the ring. With the mode beside the tone
+    (``beside``: a beat of 0.0095 turns and a 33-block time constant), three stretch means of
+    one command that move as one decaying ring are extrapolated to its end (Aitken's
+    delta-squared on the phasors, exact for one mode): the one correction puts the drive on the
+    target's, to rounding, and the loop then leaves it alone."""
+    cmds, tips = _ring_beside((0.0095, 33.0))
+    changed = np.flatnonzero(np.diff(cmds)) + 1
+    assert changed.size == 1, changed
+    np.testing.assert_allclose(cmds[-1], 5e-6 / 1e-7, rtol=1e-9)
+    np.testing.assert_allclose(tips[-1], 5e-6, rtol=1e-4)  # the ring, 375 blocks on
+    # without it the loop corrects on points of the ring, and each correction rings the mode
+    # again: it hunts for the whole run (19 corrections in 400 blocks, the drive 7 % either side
+    # of the target's in the second half)
+    cmds, tips = _ring_beside(None)
+    assert np.count_nonzero(np.diff(cmds)) > 10
+    assert np.ptp(cmds[200:]) / (5e-6 / 1e-7) > 0.08
+
+
+@pytest.mark.parametrize("beat, tau, slow", [(0.0095, 33.0, 1.0), (0.06, 33.0, 0.0), (0.0095, 4.0, 0.0)])
+def test_a_ring_counts_as_slow_only_if_it_turns_little_and_outlasts_a_stretch(beat, tau, slow):
+    # a stretch of 5 blocks here (an eighth of a 33-block ring time): a quarter beat per stretch
+    # is 0.05 turns per block
+    ctl = AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [5e-6], 1, 3, BLOCK, ring=33, beside=(beat, tau))
+    assert ctl.hold == 5 and ctl.state[SLOW, 0] == slow
+
+
+@pytest.mark.parametrize("step, waits", [(2.0, True), (1.03, False)])
+def test_a_tone_waits_a_window_after_another_tone_of_its_channel_changes(step, waits):
+    """Two tones read on one observer channel (a beat pair's sines): a window holding one's step
+    of drive holds it in the other's estimate too (read jointly, each sees the other's step).
+    When tone 0's first correction is by more than 5 % (x2), tone 1 waits a fresh window
+    (``WARM``, counted from the next block as tone 0's own wait is) and watches anew; one of 3 %
+    leaves it watching."""
+    ctl = AmplitudeController([0, 0], [0, 1], [0, 1], [0, 0], [1e-7, 1e-7], [150.0, 150.0], [5e-6, 5e-6],
+                              1, 3, BLOCK)
+    ctl.target[ENABLE] = 1.0
+    est, drive_est = np.zeros((1, 2, 9, 2)), np.zeros((1, 2, 2))
+    pending, lim = np.zeros((N_PEND, 2)), np.zeros((3, 1), dtype=np.int64)
+    # the first command aims at START of the target: tone 0 then reads 1 / step of its target,
+    # tone 1 its target
+    gain = np.array([1e-7 / (START * step), 1e-7 / START])
+    for _ in range(40):
+        est[0, :, 0, 0] = gain * pending[P_AMP]
+        before = ctl.state.copy()
+        amplitude_control(est, drive_est, ctl.index, ctl.target, ctl.state, pending, lim, float(BLOCK))
+        if ctl.state[CMD, 0] != before[CMD, 0] and before[ON, 0]:
+            break
+    else:
+        raise AssertionError("tone 0 never corrected")
+    assert before[WAIT, 1] == 0 and before[RUN, 1] + before[NSTR, 1] > 0  # tone 1 was watching
+    assert ctl.state[CMD, 0] / before[CMD, 0] == pytest.approx(step, rel=1e-12)
+    assert ctl.state[WAIT, 0] == ctl.state[WARM, 0]
+    assert (ctl.state[WAIT, 1] == ctl.state[WARM, 1]) == waits
+    assert (ctl.state[RUN, 1] == 0 and ctl.state[NSTR, 1] == 0) == waits
+
+
+def _fed_phasors(stretch_means, target=5e-6, beside=(0.0095, 33.0)):
+    """A tone with a slow ring beside it (stretches of 5 blocks) whose estimates are given as
+    phasors: after its start and wait, each stretch of 5 fresh estimates at the given mean (m).
+    Returns the command before the first given estimate and the index (in given estimates) and
+    ratio of the first correction."""
+    ctl = AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [target], 1, 3, BLOCK, ring=33, beside=beside)
+    ctl.target[ENABLE] = 1.0
+    assert ctl.hold == 5 and ctl.state[SLOW, 0] == (beside is not None)
+    est, drive_est = np.zeros((1, 1, 9, 2)), np.zeros((1, 1, 2))
+    pending, lim = np.zeros((N_PEND, 1)), np.zeros((3, 1), dtype=np.int64)
+
+    def call(y):
+        est[0, 0, 0] = y.real, y.imag
+        amplitude_control(est, drive_est, **ctl.args, pending=pending, lim_counts=lim, ramp=float(BLOCK))
+
+    call(0.5 * target + 0j)
+    while ctl.state[WAIT, 0] > 0.0:
+        call(0.5 * target + 0j)
+    a0 = ctl.state[CMD, 0]
+    for k, y in enumerate(y for m in stretch_means for y in [m] * 5):
+        call(y)
+        if ctl.state[CMD, 0] != a0:
+            return k, ctl.state[CMD, 0] / a0
+    return None, 1.0
+
+
+@pytest.mark.parametrize("w", [1.3 * np.exp(0.3j), 0.94 * np.exp(0.15j), 0.9])
+def test_no_ring_to_extrapolate_in_means_that_grow_barely_turn_or_do_not_turn(w):
+    """Stretch means about 8 % under the target that move by ``w`` per stretch (the first step
+    2 % of the target), their amplitudes within 5 % of each other: growing (``|w|`` 1.3), ringing
+    for more than 4 steps (0.94, 0.15 rad: 6 steps) or on a line (0.9, no turn). None is a ring
+    to extrapolate: the loop waits for a third stretch (the phasors moved) and then corrects on
+    the last stretch's amplitude, as where no ring is looked for."""
+    s = 0.92 * 5e-6 * np.exp(0.4j)
+    c = 0.02 * 5e-6 / abs(w - 1)  # the first step 2 % of the target
+    means = [s + c * w ** k for k in range(6)]
+    assert abs(abs(means[1]) / abs(means[0]) - 1) <= 0.05 and abs(abs(means[2]) / abs(means[1]) - 1) <= 0.05
+    k, step = _fed_phasors(means)
+    assert k == 3 * 5 - 1  # the end of the third stretch
+    np.testing.assert_allclose(step, 5e-6 / abs(means[2]), rtol=1e-12)
+
+
+def test_a_ring_is_extrapolated_to_its_end_from_three_stretch_means():
+    """The same start on a ring that turns 0.3 rad and decays to 0.87 per stretch: the first
+    correction, at the end of the third stretch, puts the drive on the ring's end exactly."""
+    s = 0.92 * 5e-6 * np.exp(0.4j)
+    w = 0.87 * np.exp(0.3j)
+    k, step = _fed_phasors([s + 0.05 * 5e-6 * w ** k for k in range(6)])
+    assert k == 3 * 5 - 1
+    np.testing.assert_allclose(step, 5e-6 / abs(s), rtol=1e-12)
+
+
+@pytest.mark.parametrize("drift", [0.004, 0.02])
+def test_only_phasors_that_move_by_more_than_a_percent_wait_for_a_third_stretch(drift):
+    """Stretch means whose amplitude is steady (4 % under the target) but whose phase drifts by
+    ``drift`` of the amplitude per stretch: under 1 % (``STILL``) the loop corrects at the end
+    of the second stretch, as where no ring is looked for; over it, at the end of the third."""
+    s = 0.96 * 5e-6
+    k, step = _fed_phasors([s * np.exp(1j * drift * n) for n in range(5)])
+    assert k == (2 if drift < 0.01 else 3) * 5 - 1
+    np.testing.assert_allclose(step, 1 / 0.96, rtol=1e-12)
+    assert _fed_phasors([s * np.exp(1j * drift * n) for n in range(5)], beside=None)[0] == 2 * 5 - 1
+
+
+def test_two_tones_of_a_channel_due_in_one_block_both_correct():
+    """Both sines of a pair read half their target at the first command: both are due to
+    correct in the same block, and both do (the wait for another tone's step is given after
+    every tone's turn, so the later tone is not stopped by the earlier one's step), then both
+    wait ``WARM``."""
+    ctl = AmplitudeController([0, 0], [0, 1], [0, 1], [0, 0], [1e-7, 1e-7], [150.0, 150.0], [5e-6, 5e-6],
+                              1, 3, BLOCK)
+    ctl.target[ENABLE] = 1.0
+    est, drive_est = np.zeros((1, 2, 9, 2)), np.zeros((1, 2, 2))
+    pending, lim = np.zeros((N_PEND, 2)), np.zeros((3, 1), dtype=np.int64)
+    for _ in range(40):
+        est[0, :, 0, 0] = 1e-7 / (START * 2.0) * pending[P_AMP]
+        before = ctl.state[CMD].copy()
+        amplitude_control(est, drive_est, ctl.index, ctl.target, ctl.state, pending, lim, float(BLOCK))
+        if np.any(ctl.state[CMD] != before) and np.all(before > 0):
+            break
+    np.testing.assert_allclose(ctl.state[CMD] / before, 2.0, rtol=1e-12)
+    np.testing.assert_array_equal(ctl.state[WAIT], ctl.state[WARM])

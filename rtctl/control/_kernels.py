@@ -42,16 +42,27 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  HOLDMAX,  # the longest stretch HOLD may grow to
  LASTDIR,  # the direction of the last correction: +1 up, -1 down, 0 none since the pace was reset
  REVS,    # small corrections in a row, each reversing the one before
- ) = range(35)
-N_STATE = 35
+ SUMR,    # sums of the present stretch's estimates as phasors (real, imaginary part), m
+ SUMI,
+ P1R,     # the phasor mean of the stretch before the last one, m
+ P1I,
+ P2R,     # the phasor mean of the last complete stretch, m
+ P2I,
+ P1V,     # the variance of the mean of the stretch before the last one, m^2
+ NSTR,    # complete stretches of the present command
+ SPREV,   # the steady amplitude the last stretch extrapolated, m (0: none)
+ SLOW,    # 1: a loaded mode rings beside the tone, turning less than a quarter beat per stretch
+ STEPPED,  # 1: the drive changed by more than AGREE in this block (its channel's other tones wait)
+ ) = range(46)
+N_STATE = 46
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
 N_TARGET = 2
 
 # index rows
-OBS_CH, OBS_SLOT, BANK, CHANNEL = 0, 1, 2, 3
-N_INDEX = 4
+OBS_CH, OBS_SLOT, BANK, CHANNEL, SIBLING = 0, 1, 2, 3, 4
+N_INDEX = 5
 
 #: largest factor one correction may change a command by, either way (a wild estimate moves the
 #: drive by at most this): a finger landing cuts a 1 kHz tip 12-14 fold and a lift-off multiplies
@@ -113,6 +124,29 @@ REVERSAL = 1.3
 #: two successive stretches further apart than this share say the plant changed: the stretch
 #: goes back to its designed length, so an event is answered at the designed pace
 CHANGED = 4.0 * AGREE
+#: a ring: two successive stretches whose phasor means differ by more than this share (and by
+#: more than their noise) hold a plant still moving, even where their amplitudes agree within
+#: AGREE. Beside a lightly damped loaded mode a step of drive rings for several of its time
+#: constants; the tip's envelope beats slowly with the tone and moves a few % per stretch, so two
+#: stretches agree on a point of the ring, not on the steady amplitude
+STILL = 0.01
+#: three successive stretch means of one command, P1, P2, A, that move as one decaying ring
+#: (``A - P2 = w (P2 - P1)``, ``|w|`` at most this) extrapolate to its end: the steady phasor
+#: ``A + w (A - P2) / (1 - w)`` (Aitken's delta-squared on complex means: exact for one mode's
+#: ring, whatever its frequency and decay)
+W_MAX = 0.95
+#: and only where the rest of the ring, ``w / (1 - w)`` of the last step, is at most this many
+#: steps: a window sliding over a change moves its estimate along a line that stops within a
+#: stretch, and three means across that stop look like a ring that barely turns, with ``w`` near
+#: 1 (up to 0.95: 19 steps more). A ring beside a loaded mode turns: 14 Hz from a 500 Hz tone,
+#: with a 25 ms time constant, ``|w| = 0.87`` and 0.3 rad per 3.3 ms stretch, 2.9 steps more
+EXT_GAIN = 4.0
+#: and only where the three means turn, by at least this (sine of the angle of ``w``): a window
+#: sliding over a change of the plant moves its estimate along a straight line, from the old
+#: phasor to the new, and three means across the line's end have a ``w`` without a turn (up to
+#: 0.8 within EXT_GAIN). A ring beside a loaded mode turns by its beat (0.3 rad per stretch
+#: above); one exactly on its mode's frequency does not, and is left to the other rules
+TURN = 0.1
 
 
 @kernel
@@ -125,6 +159,60 @@ def _watch_anew(state, i):
     state[TRIES, i] = 0.0
     state[ALL, i] = 0.0
     state[NALL, i] = 0.0
+    state[SUMR, i] = 0.0
+    state[SUMI, i] = 0.0
+    state[NSTR, i] = 0.0
+    state[SPREV, i] = 0.0
+
+
+@kernel
+def _extrapolate(state, i, ar, ai, v, pv):
+    """The steady amplitude three stretch means of one ring end at (P1, P2 and the present one,
+    ``ar + 1j ai``, whose means' variances are ``P1V``, ``pv`` and ``v``), or -1 where they do not
+    move as one decaying ring beyond their noise."""
+    if state[NSTR, i] < 2.0:
+        return -1.0
+    d1r = state[P2R, i] - state[P1R, i]
+    d1i = state[P2I, i] - state[P1I, i]
+    d2r = ar - state[P2R, i]
+    d2i = ai - state[P2I, i]
+    n1 = math.hypot(d1r, d1i)
+    n2 = math.hypot(d2r, d2i)
+    if not (n1 > NOISE_Z * math.sqrt(pv + state[P1V, i]) and n2 > NOISE_Z * math.sqrt(v + pv)
+            and n2 <= W_MAX * n1):
+        return -1.0
+    den = d1r * d1r + d1i * d1i
+    wr = (d2r * d1r + d2i * d1i) / den
+    wi = (d2i * d1r - d2r * d1i) / den
+    nr = wr * d2r - wi * d2i  # w (A - P2)
+    ni = wr * d2i + wi * d2r
+    qr = 1.0 - wr
+    qi = -wi
+    qq = qr * qr + qi * qi
+    if wr * wr + wi * wi > EXT_GAIN * EXT_GAIN * qq:
+        return -1.0  # barely turning, barely decaying: a drift, or a window sliding to a stop
+    if wi * wi < TURN * TURN * (wr * wr + wi * wi):
+        return -1.0  # three means on a line: a window sliding over a change, not a ring
+    return math.hypot(ar + (nr * qr + ni * qi) / qq, ai + (ni * qr - nr * qi) / qq)
+
+
+@kernel
+def _siblings_wait(state, index):
+    """After every tone's block: where a tone's drive stepped, every other tone of its channel
+    is read from the same currents, and a window that holds the step holds it in their
+    estimates too (a beat pair's two sines, read jointly, each see the other's step), so they
+    wait for a window without it. (A tone that stepped in the same block has just begun that
+    wait for its own step: this changes nothing for it. After the loop, not within it, so that
+    a tone later in the loop still makes the correction it was due in this block.)"""
+    for i in range(state.shape[1]):
+        if state[STEPPED, i] == 0.0:
+            continue
+        k = index[SIBLING, i]
+        while k != i:
+            if state[ON, k] != 0.0:
+                state[WAIT, k] = max(state[WAIT, k], state[WARM, k])
+                _watch_anew(state, k)
+            k = index[SIBLING, k]
 
 
 @kernel
@@ -147,7 +235,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         The observer's lock-in of the drive over the same window (amplitude V, phase rad).
     index : ndarray int64, shape (N_INDEX, n)
         Per controlled tone: the observer channel and slot of its estimate, its oscillator in the
-        bank, its drive channel (the limiter's column).
+        bank, its drive channel (the limiter's column), and the next tone read on the same
+        observer channel (a cycle through them; the tone itself where it is alone).
     target : ndarray, shape (N_TARGET, n)
         Target tip amplitude (m) and enable flag per tone.
     state : ndarray, shape (N_STATE, n)
@@ -161,9 +250,11 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
     status = 0
     n = state.shape[1]
     for i in range(n):
+        state[STEPPED, i] = 0.0
         b = index[BANK, i]
         if target[ENABLE, i] == 0.0:
             if state[ON, i] != 0.0:  # switched off: ramp to silence
+                state[STEPPED, i] = 1.0
                 state[ON, i] = 0.0
                 state[CMD, i] = 0.0
                 state[OUT, i] = 0.0
@@ -238,6 +329,10 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 state[RUN, i] = 0.0
                 state[ALL, i] = 0.0
                 state[NALL, i] = 0.0
+                state[SUMR, i] = 0.0
+                state[SUMI, i] = 0.0
+                state[NSTR, i] = 0.0
+                state[SPREV, i] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             state[FROZEN, i] = 0.0
@@ -248,6 +343,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             # shows between them)
             state[SUM, i] += y
             state[SQ, i] += y * y
+            state[SUMR, i] += est[c, j, 0, 0]
+            state[SUMI, i] += est[c, j, 0, 1]
             state[RUN, i] += 1.0
             state[ALL, i] += y
             state[NALL, i] += 1.0
@@ -257,6 +354,22 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             m = state[SUM, i] / n_run
             v = max(state[SQ, i] / n_run - m * m, 0.0) / n_run  # the mean's variance, as if independent
             prev, pv = state[REF, i], state[REFV, i]
+            ar = state[SUMR, i] / n_run
+            ai = state[SUMI, i] / n_run
+            ext = -1.0
+            moving = False
+            if state[SLOW, i] != 0.0:  # (elsewhere a ring turns or decays within a stretch)
+                ext = _extrapolate(state, i, ar, ai, v, pv)
+                moving = state[NSTR, i] >= 1.0 and (math.hypot(ar - state[P2R, i], ai - state[P2I, i])
+                                                    > max(STILL * m, NOISE_Z * math.sqrt(v + pv)))
+            young = state[NSTR, i] < 2.0
+            sprev = state[SPREV, i]
+            state[SPREV, i] = max(ext, 0.0)
+            state[P1R, i], state[P1I, i], state[P1V, i] = state[P2R, i], state[P2I, i], pv
+            state[P2R, i], state[P2I, i] = ar, ai
+            state[NSTR, i] += 1.0
+            state[SUMR, i] = 0.0
+            state[SUMI, i] = 0.0
             if prev > 0.0 and abs(m / prev - 1.0) > CHANGED:
                 _pace_anew(state, i)
             state[REF, i] = m
@@ -264,11 +377,19 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             state[SUM, i] = 0.0
             state[SQ, i] = 0.0
             state[RUN, i] = 0.0
-            if prev > 0.0 and (abs(m / prev - 1.0) <= AGREE
-                               or (state[SCATTER, i] != 0.0 and abs(r / m - 1.0) > FAR
-                                   and abs(m - prev) <= NOISE_Z * math.sqrt(v + pv))):
+            if prev > 0.0 and abs(m / prev - 1.0) <= AGREE and moving and ext < 0.0 and young:
+                continue  # amplitudes agree on a point of a slow ring: a third stretch tells its end
+            if prev > 0.0 and abs(m / prev - 1.0) <= AGREE and moving and ext > 0.0:
+                y = ext
+                g = state[GAIN, i]
+            elif ext > 0.0 and sprev > 0.0 and abs(ext / sprev - 1.0) <= AGREE:
+                y = ext  # two successive stretches extrapolate the ring to one end
+                g = state[GAIN, i]
+            elif prev > 0.0 and (abs(m / prev - 1.0) <= AGREE
+                                 or (state[SCATTER, i] != 0.0 and abs(r / m - 1.0) > FAR
+                                     and abs(m - prev) <= NOISE_Z * math.sqrt(v + pv))):
                 y = m
-                if abs(r / m - 1.0) <= AGREE:
+                if abs(r / m - 1.0) <= AGREE and not moving:
                     # near the target the steady plant is best seen in the mean of every fresh
                     # estimate of this command (the last correction's fine tuning)
                     y = state[ALL, i] / state[NALL, i]
@@ -317,8 +438,11 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if rising:  # block by block along a raised cosine from the last drive to the command
             state[RISEK, i] += 1.0
             a = state[A0, i] + (a - state[A0, i]) * 0.5 * (1.0 - math.cos(math.pi * state[RISEK, i] / state[RISE, i]))
+        if abs(a - state[OUT, i]) > AGREE * state[OUT, i]:
+            state[STEPPED, i] = 1.0
         state[OUT, i] = a
         pending[P_AMP, b] = a
         pending[P_RAMP, b] = ramp
         pending[P_FLAG, b] = 1.0
+    _siblings_wait(state, index)
     return status

@@ -27,6 +27,16 @@ steps, per controlled tone:
   under 0.2 % is left alone and the watch goes on: a correction blinds the loop for ``W``, so
   skipping needless ones lets it answer a change of the plant a window sooner (``M + L + 2 H``
   blocks after the change, rather than up to ``W`` more);
+* a slow ring (``beside``: the model puts a loaded mode so near the tone that its ring turns
+  less than a quarter beat per stretch, and outlasts a stretch): two stretches whose amplitudes
+  agree may agree on a point of the ring. Where their phasor means moved (by more than 1 % and
+  their noise) the loop waits for a third; three stretch means of one command that move as one
+  decaying, turning ring (``A - P2 = w (P2 - P1)``) are extrapolated to its end,
+  ``A + w (A - P2) / (1 - w)`` (Aitken's delta-squared on the phasors, exact for one mode), and
+  the correction is made on that; two successive extrapolations that agree are steady too;
+* every tone read on one observer channel (a beat pair's sines) waits a fresh window when
+  another's drive changes by more than 5 %: the window that holds that step holds it in every
+  estimate of the channel;
 * hunting: from the second correction in a row by 5-30 % (either way) that reverses the one
   before, each such correction doubles ``H``, up to half the ring time: the two stretches had
   agreed on the extremes of a beat of the tone with a loaded mode, which a longer stretch
@@ -68,6 +78,8 @@ from ._kernels import (
     OBS_SLOT,
     RISE,
     SCATTER,
+    SIBLING,
+    SLOW,
     TARGET,
     WARM,
 )
@@ -133,6 +145,12 @@ class AmplitudeController:
         decay time; a rise of ``T`` leaves of a mode ``df`` away from the tone about
         ``|cos(pi df T) / (1 - 4 (df T)^2)|`` of what a step leaves (1/15 at ``df T = 2``), at the
         cost of ``T`` before the next estimate.
+    beside : (array_like, array_like), each of shape (n,), optional
+        Per tone, the loaded mode nearest to it (under any load the observer may read): its beat
+        with the tone in turns per block and its time constant in blocks. Where that ring turns
+        by less than a quarter per stretch and outlasts one, two stretches whose amplitudes agree
+        but whose phasors moved wait for a third, which tells where the ring ends (``SLOW``).
+        None: no such mode.
 
     Attributes
     ----------
@@ -144,12 +162,15 @@ class AmplitudeController:
     """
 
     def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
-                 latency: int, window, block: int, ring: int = 0, rise: int = 0):
+                 latency: int, window, block: int, ring: int = 0, rise: int = 0, beside=None):
         n = len(bank_index)
         self.n = n
         self.index = np.zeros((N_INDEX, n), dtype=np.int64)
         self.index[OBS_CH], self.index[OBS_SLOT] = obs_channel, obs_slot
         self.index[BANK], self.index[CHANNEL] = bank_index, channel
+        for c in np.unique(self.index[OBS_CH]):  # the tones of one observer channel, a cycle
+            same = np.flatnonzero(self.index[OBS_CH] == c)
+            self.index[SIBLING, same] = np.roll(same, -1)
         self.state = np.zeros((N_STATE, n))
         self.target = np.zeros((N_TARGET, n))
         g = np.asarray(gain_model, dtype=float)
@@ -174,6 +195,11 @@ class AmplitudeController:
             self.scatter = (self.hold >= np.maximum(1, w)).astype(float)
         self.block = int(block)
         self.rise = max(0, int(rise))
+        self.slow = np.zeros(n)
+        if beside is not None:
+            beat, tau = (np.broadcast_to(np.asarray(x, dtype=float), (n,)) for x in beside)
+            hold = np.broadcast_to(self.hold, (n,))
+            self.slow = ((beat * hold < 0.25) & (tau > hold)).astype(float)
         self.reset()
 
     @property
@@ -193,6 +219,7 @@ class AmplitudeController:
         self.state[HOLD] = self.state[HOLD0] = self.hold
         self.state[HOLDMAX] = np.maximum(self.hold, -(-self.ring // 2))
         self.state[SCATTER] = self.scatter
+        self.state[SLOW] = self.slow
         self.state[RISE] = self.rise
         self.target[TARGET] = self.targets0
         self.target[ENABLE] = 0.0

@@ -244,8 +244,10 @@ class Rig:
             # each tone waits for its own channel's window, in whole blocks
             window = -(-obs.windows[c_] // self.block)
             rise = int(round(scene.control.rise_s * self.fs / self.block))
+            beat, tau = self.models.nearest_modes(g, f)  # in turns per block and blocks
+            beside = (beat * self.block / self.fs, tau * self.fs / self.block)
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
-                                      ring, rise)
+                                      ring, rise, beside)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
