@@ -234,15 +234,15 @@ def fmt(v, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
 
-def least_reach(tones=TONES, events=EVENTS) -> list[float]:
+def least_reach(tones=TONES, events=EVENTS, extra=()) -> list[float]:
     """Per tone, the least reach (um at max_voltage) over every device of the grid and every
-    segment's finger."""
+    segment's finger (``extra``: the run's ``--set`` overrides, a beam of another geometry)."""
     from rtctl import scene
 
-    vmax = scene.load(SCENE).actuator[0].max_voltage
+    vmax = scene.load(SCENE, list(extra)).actuator[0].max_voltage
     least = [math.inf] * len(tones)
     for dev in devices(quick=False):
-        for seg in gains(dev, tones, events):
+        for seg in gains(dev, tones, events, extra):
             least = [min(x, reach(gain, vmax)) for x, gain in zip(least, seg)]
     return least
 
@@ -286,7 +286,7 @@ def main(argv=None) -> int:
                     help="a scene override for every run (e.g. control.rise_s=0.02); repeatable")
     a = ap.parse_args(argv)
     if a.targets:
-        for (f, b, r), x in zip(TONES, least_reach()):
+        for (f, b, r), x in zip(TONES, least_reach(extra=a.set)):
             print(f"{f:g} Hz beat {b:g}: least reach {x:.2f} um, half {x / 2:.2f}; target {r:g} um")
         return 0
     cases, tasks = [], [(dev, cal) for dev in devices(a.quick) for cal in (True, False)]

@@ -34,6 +34,12 @@ IMAGE_WIDTHS = 3.0
 #: bundled beams sit at 5-8; beyond 1e4 the current noise would dominate the estimate.
 OBSERVER_MAX_COND = 1e4
 
+#: How far a real finger's static stiffness may lie from the scene's, either way, where the
+#: amplitude controller asks which loaded modes may ring beside a tone (the devices it is held
+#: to have finger k0 x0.3 ... x3; under the bundled 200 g set at k0 / 3 the first loaded mode
+#: moves from 631 to 585 Hz, and a device with E x0.9 put it at 568 Hz)
+FINGER_SPREAD = 3.0
+
 
 def image_modes(freqs_hz, zeta: float, fs: float) -> int:
     """How many of a beam's modes (``freqs_hz``, ascending) a plant must keep for every mode near
@@ -376,12 +382,21 @@ class Models:
 
     def nearest_modes(self, group, freqs):
         """Per frequency (Hz), the loaded mode of bimorph ``group`` nearest to it under any load
-        its observer may read (:meth:`finger`, :meth:`other_fingers`): ``(|f_mode - f| Hz,
-        tau s)``, each of the shape of ``freqs`` (inf and 0 where the plant has no such mode)."""
+        its observer may read (:meth:`finger`, :meth:`other_fingers`), each also with its static
+        stiffness :data:`FINGER_SPREAD` times softer and stiffer (the scene's finger is a guess:
+        a softer one pulls a loaded mode 50-100 Hz down): ``(|f_mode - f| Hz, tau s)``, each of
+        the shape of ``freqs`` (inf and 0 where the plant has no such mode)."""
         import numpy as np
 
+        from .plant.finger import MaxwellLoad
+
         f = np.asarray(freqs, dtype=float)
-        loads = [self.finger(group), *self.other_fingers(group)]
+        loads = []
+        for load in [self.finger(group), *self.other_fingers(group)]:
+            loads.append(load)
+            if load is not None:
+                loads += [MaxwellLoad(load.mass, load.k0 * x, load.branches)
+                          for x in (1.0 / FINGER_SPREAD, FINGER_SPREAD)]
         modes = [self.loaded_modes(group, load) for load in loads]
         fm, tm = (np.concatenate(x) for x in zip(*modes))
         if not fm.size:

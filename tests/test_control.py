@@ -531,10 +531,11 @@ def test_a_ring_beside_a_loaded_mode_is_corrected_on_its_end():
     assert np.ptp(cmds[200:]) / (5e-6 / 1e-7) > 0.08
 
 
-@pytest.mark.parametrize("beat, tau, slow", [(0.0095, 33.0, 1.0), (0.06, 33.0, 0.0), (0.0095, 4.0, 0.0)])
+@pytest.mark.parametrize("beat, tau, slow", [(0.0095, 33.0, 1.0), (0.095, 33.0, 1.0), (0.105, 33.0, 0.0),
+                                             (0.0095, 4.0, 0.0)])
 def test_a_ring_counts_as_slow_only_if_it_turns_little_and_outlasts_a_stretch(beat, tau, slow):
-    # a stretch of 5 blocks here (an eighth of a 33-block ring time): a quarter beat per stretch
-    # is 0.05 turns per block
+    # a stretch of 5 blocks here (an eighth of a 33-block ring time): half a beat per stretch is
+    # 0.1 turns per block
     ctl = AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [5e-6], 1, 3, BLOCK, ring=33, beside=(beat, tau))
     assert ctl.hold == 5 and ctl.state[SLOW, 0] == slow
 

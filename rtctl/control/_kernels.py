@@ -51,7 +51,7 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  P1V,     # the variance of the mean of the stretch before the last one, m^2
  NSTR,    # complete stretches of the present command
  SPREV,   # the steady amplitude the last stretch extrapolated, m (0: none)
- SLOW,    # 1: a loaded mode rings beside the tone, turning less than a quarter beat per stretch
+ SLOW,    # 1: a loaded mode rings beside the tone, turning less than half a beat per stretch
  STEPPED,  # 1: the drive changed by more than AGREE in this block (its channel's other tones wait)
  ) = range(46)
 N_STATE = 46

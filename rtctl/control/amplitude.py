@@ -28,7 +28,7 @@ steps, per controlled tone:
   skipping needless ones lets it answer a change of the plant a window sooner (``M + L + 2 H``
   blocks after the change, rather than up to ``W`` more);
 * a slow ring (``beside``: the model puts a loaded mode so near the tone that its ring turns
-  less than a quarter beat per stretch, and outlasts a stretch): two stretches whose amplitudes
+  less than half a beat per stretch, and outlasts a stretch): two stretches whose amplitudes
   agree may agree on a point of the ring. Where their phasor means moved (by more than 1 % and
   their noise) the loop waits for a third; three stretch means of one command that move as one
   decaying, turning ring (``A - P2 = w (P2 - P1)``) are extrapolated to its end,
@@ -83,6 +83,13 @@ from ._kernels import (
     TARGET,
     WARM,
 )
+
+#: a loaded mode rings "beside" a tone (``SLOW``) where its beat with the tone turns by less than
+#: this many turns per stretch (and the ring outlasts a stretch): two stretches can then agree in
+#: amplitude on a point of its ring. A quarter turn left out the bundled beam's 500 Hz tone under
+#: a soft finger (a mode 70-90 Hz away, 0.24-0.3 turns per 4-5 block stretch), which hunted
+#: there for 300 ms
+SLOW_TURNS = 0.5
 
 
 def steady_blocks(window: int, ring: int) -> int:
@@ -146,11 +153,11 @@ class AmplitudeController:
         ``|cos(pi df T) / (1 - 4 (df T)^2)|`` of what a step leaves (1/15 at ``df T = 2``), at the
         cost of ``T`` before the next estimate.
     beside : (array_like, array_like), each of shape (n,), optional
-        Per tone, the loaded mode nearest to it (under any load the observer may read): its beat
-        with the tone in turns per block and its time constant in blocks. Where that ring turns
-        by less than a quarter per stretch and outlasts one, two stretches whose amplitudes agree
-        but whose phasors moved wait for a third, which tells where the ring ends (``SLOW``).
-        None: no such mode.
+        Per tone, the loaded mode nearest to it (:meth:`~rtctl.models.Models.nearest_modes`):
+        its beat with the tone in turns per block and its time constant in blocks. Where that
+        ring turns by less than ``SLOW_TURNS`` (half a turn) per stretch and outlasts one, two
+        stretches whose amplitudes agree but whose phasors moved wait for a third, which tells
+        where the ring ends (``SLOW``). None: no such mode.
 
     Attributes
     ----------
@@ -199,7 +206,7 @@ class AmplitudeController:
         if beside is not None:
             beat, tau = (np.broadcast_to(np.asarray(x, dtype=float), (n,)) for x in beside)
             hold = np.broadcast_to(self.hold, (n,))
-            self.slow = ((beat * hold < 0.25) & (tau > hold)).astype(float)
+            self.slow = ((beat * hold < SLOW_TURNS) & (tau > hold)).astype(float)
         self.reset()
 
     @property
