@@ -12,13 +12,16 @@ block:
 
 * ``at event``: in the event's own block (clairvoyant: no controller that is not told of the
   event can do this);
+* ``next block``: one block later, the first block whose drive a loop could set after reading
+  the event's block (no loop that reads its device one block at a time acts sooner);
 * ``after warm``: ``WARM`` blocks later, when the closed loop's observer first holds a window
   with nothing of the old load in it (the earliest a correction on a clean estimate can come).
 
 Per tone and segment it prints the time to stay within 5 % of the target and the overshoot of
 each, with the same windows as the sweep (``report.against_target``). Where even the oracle at the
-event misses a clause, that miss is the beam's, not the loop's; where the oracle after warm misses
-it, no loop that waits for a clean window meets it. ``--against FILE`` (``control_sweep.py
+event misses a clause, that miss is the beam's, not the loop's; where the oracle in the next block
+misses it, no loop that acts on what it has read meets it (the block's); where the oracle after
+warm misses it, no loop that waits for a clean window meets it. ``--against FILE`` (``control_sweep.py
 --json`` output) adds the closed loop's figures and sorts its misses by these two.
 
     python bench/control_oracle.py [--quick] [--against SWEEP.json] [--json]
@@ -92,16 +95,22 @@ def oracle(device: dict, delays: list[int]) -> dict:
     return {"tip": tip, "t": np.arange(tip.shape[1]) / fs, "events": [kb * block / fs for kb in ev_blocks]}
 
 
+#: Blocks after the event at which the oracle also moves the drive: how soon a loop would have to
+#: act to meet what the oracle after ``WARM`` misses (0 and 1 are ``at event`` and ``next block``).
+LADDER = (0, 1, 2, 4, 8, 16, 32)
+
+
 def figures(device: dict) -> list[dict]:
-    """Per tone, per event segment: the oracle's settle time and overshoot at the event and after
-    the closed loop's WARM."""
+    """Per tone, per event segment: the oracle's settle time and overshoot at the event, in the
+    next block, after each of ``LADDER``'s delays and after the closed loop's WARM."""
     from rtctl import scene
     from rtctl.engine import report
 
     vmax = scene.load(cs.SCENE).actuator[0].max_voltage
     g = cs.gains(device)
     warm = _warm_blocks(device)
-    runs = {"at_event": oracle(device, [0] * len(cs.TONES)), "after_warm": oracle(device, warm)}
+    ladder = {d: oracle(device, [d] * len(cs.TONES)) for d in LADDER}
+    runs = {"at_event": ladder[0], "next_block": ladder[1], "after_warm": oracle(device, warm)}
     ends = runs["at_event"]["events"][1:] + [cs.DURATION]
     rows = []
     for n, (f, b, target) in enumerate(cs.TONES):
@@ -113,8 +122,21 @@ def figures(device: dict) -> list[dict]:
                    "required_ms": 1e3 * max(5.0 / (b or f), 0.05)}
             for name, r in runs.items():
                 row[name] = report.against_target(r["tip"][n], r["t"], freqs, t0, ends[i - 1], target)
+            row["ladder"] = {d: report.against_target(r["tip"][n], r["t"], freqs, t0, ends[i - 1], target)
+                             for d, r in ladder.items()}
             rows.append(row)
     return rows
+
+
+def _acts_by(row: dict, clause: str) -> int | None:
+    """The latest of ``LADDER``'s delays (blocks) up to which the oracle meets ``clause`` at every
+    delay; None if it misses it at the event."""
+    last = None
+    for d in LADDER:
+        if clause in _misses(row["ladder"][d], row["required_ms"]):
+            break
+        last = d
+    return last
 
 
 def _misses(fig: dict, required: float) -> set:
@@ -150,7 +172,8 @@ def main(argv=None) -> int:
         if not a.json:
             print(f"  {cs.label(dev)}: done", file=sys.stderr)
     closed = _closed(json.loads(Path(a.against).read_text())) if a.against else {}
-    counts = {"closed": 0, "beam": 0, "latency": 0, "loop": 0}
+    counts = {"closed": 0, "beam": 0, "block": 0, "latency": 0, "loop": 0}
+    acts: dict[int, int] = {}  # the latency class by how soon the oracle must act to meet them
     for r in rows:
         if not r["reachable"]:
             continue
@@ -158,19 +181,25 @@ def main(argv=None) -> int:
         if sg is None:
             continue
         r["closed"] = {"settle_ms": sg["settle_ms"], "overshoot_pct": sg["overshoot_pct"]}
-        got, beam, late = (_misses(x, r["required_ms"]) for x in (r["closed"], r["at_event"], r["after_warm"]))
-        r["closed_misses"] = {m: "beam" if m in beam else "latency" if m in late else "loop" for m in sorted(got)}
+        got, beam, block, late = (_misses(x, r["required_ms"])
+                                  for x in (r["closed"], r["at_event"], r["next_block"], r["after_warm"]))
+        r["closed_misses"] = {m: "beam" if m in beam else "block" if m in block else "latency" if m in late
+                              else "loop" for m in sorted(got)}
         counts["closed"] += len(got)
-        for why in r["closed_misses"].values():
+        for m, why in r["closed_misses"].items():
             counts[why] += 1
-    result = {"rows": rows, "closed_misses": counts if closed else None}
+            if why == "latency":
+                by = _acts_by(r, m)
+                acts[by] = acts.get(by, 0) + 1
+    result = {"rows": rows, "closed_misses": counts if closed else None,
+              "latency_acts_by_blocks": {str(d): acts[d] for d in sorted(acts)} if closed else None}
     print(json.dumps(result, indent=1))
     if a.json:
         return 0
     print()
-    print(f"{'device':<28}{'tone':<12}{'segment':<8}{'req ms':>7}  {'at event':<16}{'after warm':<18}"
-          f"{'closed loop':<16}closed-loop misses")
-    print(f"{'':<28}{'':<12}{'':<8}{'':>7}  " + f"{'settle ms ovs%':<16}" * 2 + f"  {'settle ms ovs%':<16}")
+    print(f"{'device':<28}{'tone':<12}{'segment':<8}{'req ms':>7}  {'at event':<16}{'next block':<16}"
+          f"{'after warm':<18}{'closed loop':<16}closed-loop misses")
+    print(f"{'':<28}{'':<12}{'':<8}{'':>7}  " + f"{'settle ms ovs%':<16}" * 3 + f"  {'settle ms ovs%':<16}")
 
     def cell(x):
         return f"{cs.fmt(x['settle_ms'], '.0f'):>6} {x['overshoot_pct']:+8.1f}  "
@@ -181,11 +210,21 @@ def main(argv=None) -> int:
         tone = f"{r['freq_hz']:g}" + (f"/{r['beat_hz']:g}" if r["beat_hz"] else "") + " Hz"
         why = ", ".join(f"{m}: {w}" for m, w in r.get("closed_misses", {}).items())
         print(f"{r['device']:<28}{tone:<12}{r['segment']:<8}{r['required_ms']:7.0f}  {cell(r['at_event'])}"
-              f"{cell(r['after_warm'])}  {cell(r['closed']) if 'closed' in r else '':<16}{why}")
+              f"{cell(r['next_block'])}{cell(r['after_warm'])}  {cell(r['closed']) if 'closed' in r else '':<16}{why}")
     if closed:
         print(f"\nclosed-loop misses after events: {counts['closed']}; the oracle at the event misses them too "
-              f"(the beam's): {counts['beam']}; only the oracle after WARM does (no loop waiting for a clean "
+              f"(the beam's): {counts['beam']}; the oracle in the next block does (no loop acting on what it has read "
+              f"meets them): {counts['block']}; only the oracle after WARM does (no loop waiting for a clean "
               f"window meets them): {counts['latency']}; the oracle meets them (the loop's own): {counts['loop']}")
+        from rtctl import scene
+
+        timing = scene.load(cs.SCENE).timing
+        block_ms = 1e3 * timing.block / timing.fs
+        for d in sorted(acts):
+            later = LADDER.index(d) + 1
+            then = f"not after {LADDER[later]}" if later < len(LADDER) else "still after it"
+            print(f"  {acts[d]} of those the oracle meets acting up to {d} blocks ({d * block_ms:.1f} ms) after "
+                  f"the event, {then}")
     return 0
 
 

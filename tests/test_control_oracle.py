@@ -68,3 +68,22 @@ def test_a_lift_off_overshoots_at_the_held_drive_and_not_with_the_oracle_at_the_
     b = against_target(late["tip"][n], late["t"], [40.0], t0, t1, target)
     assert a["overshoot_pct"] < 5.0
     assert b["overshoot_pct"] == pytest.approx(100.0 * step, abs=3.0)
+
+
+def test_acts_by_is_the_last_delay_of_an_unbroken_run_of_meets():
+    """The latency class is sorted by how soon the oracle must act: the last delay of ``LADDER``
+    up to which every delay meets the clause (a later delay that meets again does not count)."""
+    ok = {"settle_ms": 20.0, "overshoot_pct": 1.0}
+    ovs = {"settle_ms": 20.0, "overshoot_pct": 40.0}
+    slow = {"settle_ms": 80.0, "overshoot_pct": 1.0}
+    ladder = oracle.LADDER
+    assert ladder[:3] == (0, 1, 2)
+
+    def row(figs):
+        return {"required_ms": 50.0, "ladder": dict(zip(ladder, figs))}
+
+    rest = [ovs] * (len(ladder) - 3)
+    assert oracle._acts_by(row([ok, ok, ok, *rest]), "overshoot") == 2
+    assert oracle._acts_by(row([ok, ok, ok, *rest]), "settle") == ladder[-1]
+    assert oracle._acts_by(row([ok, ovs, ok, *[ok] * len(rest)]), "overshoot") == 0
+    assert oracle._acts_by(row([slow, ok, ok, *rest]), "settle") is None
