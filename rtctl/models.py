@@ -380,6 +380,27 @@ class Models:
 
         return self._get(("modes", group.name, finger), build)
 
+    def _spread_modes(self, group):
+        """``(f Hz, tau s)`` of every loaded mode under the loads of :meth:`nearest_modes`."""
+        import numpy as np
+
+        from .plant.finger import MaxwellLoad
+
+        loads = []
+        for load in [self.finger(group), *self.other_fingers(group)]:
+            loads.append(load)
+            if load is not None:
+                loads += [MaxwellLoad(load.mass, load.k0 * x, load.branches)
+                          for x in (1.0 / FINGER_SPREAD, FINGER_SPREAD)]
+        modes = [self.loaded_modes(group, load) for load in loads]
+        return tuple(np.concatenate(x) for x in zip(*modes))
+
+    def lowest_mode(self, group) -> float:
+        """The lowest loaded mode of bimorph ``group`` under any load of :meth:`nearest_modes`,
+        Hz (inf: none)."""
+        fm, _ = self._spread_modes(group)
+        return float(fm.min()) if fm.size else float("inf")
+
     def nearest_modes(self, group, freqs):
         """Per frequency (Hz), the loaded mode of bimorph ``group`` nearest to it under any load
         its observer may read (:meth:`finger`, :meth:`other_fingers`), each also with its static
@@ -388,17 +409,8 @@ class Models:
         the shape of ``freqs`` (inf and 0 where the plant has no such mode)."""
         import numpy as np
 
-        from .plant.finger import MaxwellLoad
-
         f = np.asarray(freqs, dtype=float)
-        loads = []
-        for load in [self.finger(group), *self.other_fingers(group)]:
-            loads.append(load)
-            if load is not None:
-                loads += [MaxwellLoad(load.mass, load.k0 * x, load.branches)
-                          for x in (1.0 / FINGER_SPREAD, FINGER_SPREAD)]
-        modes = [self.loaded_modes(group, load) for load in loads]
-        fm, tm = (np.concatenate(x) for x in zip(*modes))
+        fm, tm = self._spread_modes(group)
         if not fm.size:
             return np.full(f.shape, np.inf), np.zeros(f.shape)
         near = np.abs(fm - f[..., None]).argmin(axis=-1)
@@ -424,18 +436,18 @@ class Models:
                          "actuator, which this version cannot model yet")
 
     def observer(self, group, freqs, fs: float, block: int, wave=None, window=None, hop=None,
-                 lstsq=False):
+                 lstsq=False, prefilter=None):
         """The self-sensing observer of a bimorph group on ``freqs`` (Hz, ``(n_channels, width)``,
         0 for an unused slot): the transfer-matrix beam under the finger, the front end of the
         group's amplifier and sense chain; the rebuilt tip wave goes into ``wave``; ``window``,
-        ``hop`` and ``lstsq`` as for :class:`~rtctl.selfsense.rt.Observer` (one window for all
+        ``hop``, ``lstsq`` and ``prefilter`` as for :class:`~rtctl.selfsense.rt.Observer` (one window for all
         channels or one per channel; default :func:`~rtctl.selfsense.rt.block_window`). An
         ill-conditioned tone is refused (ModelError)."""
         from .selfsense.rt import Observer
 
         return Observer(self.observer_beam(group), freqs, fs, block, self.frontend(group, fs),
                         window=window, image_load=self.finger(group), max_cond=OBSERVER_MAX_COND, wave=wave,
-                        hop=hop, lstsq=lstsq, image_loads=self.other_fingers(group))
+                        hop=hop, lstsq=lstsq, image_loads=self.other_fingers(group), prefilter=prefilter)
 
     def observer_beam(self, group):
         """The transfer-matrix twin of ``group``'s beam the observer is designed on."""

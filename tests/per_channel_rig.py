@@ -43,7 +43,8 @@ class PerChannelRig(Rig):
             rise = int(round(scene.control.rise_s * self.fs / self.block))
             beat, tau = self.models.nearest_modes(g, f)
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
-                                      -(-obs.window // self.block), self.block, ring, rise,
+                                      -(-(obs.window + int(obs.prefilter_memory.max())) // self.block), self.block,
+                                      ring, rise,
                                       (beat * self.block / self.fs, tau * self.fs / self.block))
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):

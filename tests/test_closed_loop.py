@@ -92,7 +92,11 @@ def test_one_controller_per_group_runs_as_a_controller_per_channel_bitwise(tmp_p
     for _, _, one in twin.controllers:
         cols = [int(np.nonzero(ctl.index[BANK] == b)[0][0]) for b in one.index[BANK]]
         assert np.array_equal(ctl.state[:, cols], one.state) and np.array_equal(ctl.target[:, cols], one.target)
-    assert sorted(set(ctl.warm.tolist())) == [group.latency + w + 1 for w in (19, 25, 50, 75)]
+    # 80 and 40 Hz wait for their low-pass's memory too; 120 Hz and up are not low-passed
+    obs = group.observer_stages[0][1].observer
+    assert np.flatnonzero(obs.prefilter).tolist() == [0, 3]
+    w80, w40 = (-(-(w + int(obs.prefilter_memory[c])) // group.block) for c, w in ((0, 600), (3, 2400)))
+    assert sorted(set(ctl.warm.tolist())) == [group.latency + w + 1 for w in (w80, 25, 50, w40)]
     runs = {}
     for name, rig in (("group", group), ("twin", twin)):
         run(sc, tmp_path / name, plot=False, rig=rig)

@@ -108,8 +108,8 @@ def test_observe_stage_is_bitwise_the_old_kernel():
     outs, sensed = inputs(freqs, 2, n_blocks, rng)
     st_new = ObserverStage(obs, 2, np.zeros((n_ch, BLOCK)), np.zeros((2 * n_ch, BLOCK)), np.zeros(n_ch))
     st_old = ObserverStage(ref, 2, np.zeros((n_ch, BLOCK)), np.zeros((2 * n_ch, BLOCK)), np.zeros(n_ch))
-    # the old kernel's slot there held the currents' outputs; it reads one image load
-    picking = ("Hc", "pick", "resid", "contact", "lag")
+    # the old kernel's slot there held the currents' outputs; it reads one image load, unfiltered
+    picking = ("Hc", "pick", "resid", "contact", "lag", "pf", "pf_z", "pf_x", "pf_g")
     old_args = dict({k: v for k, v in st_old.args.items() if k not in picking}, back=i_out)
     for b in range(n_blocks):
         sl = slice(b * BLOCK, (b + 1) * BLOCK)

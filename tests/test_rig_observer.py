@@ -3,6 +3,7 @@ simulated finite-element plant's true tip motion, which the observer never sees.
 
 import numpy as np
 import pytest
+import scipy.signal
 from naive_selfsense import observer_block
 
 from rtctl import scene
@@ -98,6 +99,16 @@ def test_closed_loop_each_channel_observes_over_its_own_tones():
         drive[:, (k + L) * B:(k + L + 1) * B] = rig.out  # the observer pairs it with currents L blocks on
         sensed[:, k * B:(k + 1) * B] = rig.sensed
     n = n_blocks * B
+    # channels far below the loaded beam's lowest mode read drive and currents through a low-pass
+    # (scipy's lfilter here), the rest as they are
+    lowest = rig.models.lowest_mode(rig.observer_stages[0][2])
+    assert 500.0 < lowest < 700.0
+    assert np.flatnonzero(obs.prefilter).tolist() == [0, 1, 2]     # 2, 10, 40 Hz; not 120, 250
+    assert obs.prefilter[:3] == pytest.approx(3 * [0.45 * lowest])  # docs/control.md: 263 Hz here
+    for c in np.flatnonzero(obs.prefilter):
+        b, a = scipy.signal.butter(2, obs.prefilter[c], fs=rig.fs)
+        drive[c] = scipy.signal.lfilter(b, a, drive[c])
+        sensed[c * m:(c + 1) * m] = scipy.signal.lfilter(b, a, sensed[c * m:(c + 1) * m], axis=1)
     H = obs.H[..., 0] + 1j * obs.H[..., 1]
     got = obs.est[..., 0] + 1j * obs.est[..., 1]
     for c, w in enumerate(obs.windows):
@@ -113,7 +124,7 @@ def test_closed_loop_each_channel_observes_over_its_own_tones():
                                   obs.freqs[c:c + 1], rig.fs, m, start=n - obs.window)
             assert abs(long[0, 0, 0] - want[0, 0, 0]) > 1e-4 * abs(want[0, 0, 0]), c
     # the group's one controller reads the group observer's estimates, each tone its own channel's
-    # row, and waits for that channel's window in whole blocks
+    # row, and waits for that channel's window and low-pass memory in whole blocks
     from rtctl.control._kernels import CHANNEL, OBS_CH
 
     (_, seen, ctl), = rig.controllers
@@ -121,7 +132,9 @@ def test_closed_loop_each_channel_observes_over_its_own_tones():
     stage, = (s for s in rig.stages if s.name == "control lateral")
     assert stage.args["est"] is obs.est and stage.args["drive_est"] is obs.u_out
     assert ctl.index[OBS_CH].tolist() == ctl.index[CHANNEL].tolist() == list(range(5))
-    assert ctl.warm.tolist() == [L + 750 + 1, L + 150 + 1, L + 75 + 1, L + 25 + 1, L + 6 + 1]
+    mem = obs.prefilter_memory
+    assert mem[3:].tolist() == [0, 0] and np.all(mem[:3] > 0) and np.all(mem[:3] < 4 * B)
+    assert ctl.warm.tolist() == [L + 1 + (w + x + B - 1) // B for w, x in zip((24000, 4800, 2400, 800, 192), mem)]
 
 
 
@@ -130,7 +143,8 @@ def test_closed_loop_windows_off_the_block_grid():
     235 + 265 Hz (one 30 Hz beat: 1600, where whole periods of both need 9600): the lock-ins hop
     every 8 samples, the pair is read by least squares, and each estimate is ``H`` applied to the
     joint least-squares phasors (numpy ``lstsq``) of the drive and currents the loop really had
-    over the channel's own window; the controller's columns wait whole blocks for them (19 and 50)."""
+    over the channel's own window (the 80 Hz channel's through its low-pass: scipy's lfilter here);
+    the controller's columns wait whole blocks for them (600 samples and the low-pass's memory, and 50)."""
     from rtctl.engine.rig import build
 
     tones = "[{channel = 0, freq = 80, voltage = 1.0, target_um = 6.0}, " \
@@ -141,7 +155,9 @@ def test_closed_loop_windows_off_the_block_grid():
     assert obs.windows.tolist() == [600, 1600] and obs.lstsq.tolist() == [False, True] and obs.hop == 8
     assert obs.lock_u.cond[1] == pytest.approx(1.0686, abs=1e-4)
     (_, _, ctl), = rig.controllers
-    assert ctl.warm.tolist() == [rig.latency + 19 + 1] + 2 * [rig.latency + 50 + 1]  # the pair: two columns
+    assert obs.prefilter[1] == 0.0 and 0 < obs.prefilter_memory[0] < 4 * rig.block
+    w80 = -(-(600 + int(obs.prefilter_memory[0])) // rig.block)
+    assert ctl.warm.tolist() == [rig.latency + w80 + 1] + 2 * [rig.latency + 50 + 1]  # the pair: two columns
     n_blocks, B, L, m = 300, rig.block, rig.latency, obs.n_seg
     drive, sensed = np.zeros((2, (n_blocks + L) * B)), np.zeros((2 * m, n_blocks * B))
     for k in range(n_blocks):
@@ -150,6 +166,9 @@ def test_closed_loop_windows_off_the_block_grid():
         drive[:, (k + L) * B:(k + L + 1) * B] = rig.out
         sensed[:, k * B:(k + 1) * B] = rig.sensed
     n = n_blocks * B
+    b, a = scipy.signal.butter(2, obs.prefilter[0], fs=rig.fs)
+    drive[0] = scipy.signal.lfilter(b, a, drive[0])
+    sensed[:m] = scipy.signal.lfilter(b, a, sensed[:m], axis=1)
     H = obs.H[..., 0] + 1j * obs.H[..., 1]
     got = obs.est[..., 0] + 1j * obs.est[..., 1]
     for c, w in enumerate(obs.windows):

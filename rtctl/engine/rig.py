@@ -184,7 +184,7 @@ class Rig:
         Under closed-loop control each channel's lock-in window holds whole periods of its own
         tones only (a 250 Hz channel is not made to wait for a 2 Hz one); else the window holds
         whole periods of every tone of the group."""
-        from ..selfsense.rt import short_windows
+        from ..selfsense.rt import prefilter_cutoffs, short_windows
         from ..selfsense.stage import ObserverStage
 
         if scene.stimulus.kind != "tones":
@@ -203,7 +203,9 @@ class Rig:
                 window, lstsq, hop = (short_windows(freqs, self.fs, self.block) if self.closed
                                       else (None, False, None))
                 obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[ch0:c1],
-                                           window=window, hop=hop, lstsq=lstsq)
+                                           window=window, hop=hop, lstsq=lstsq,
+                                           prefilter=(prefilter_cutoffs(freqs, self.fs, self.models.lowest_mode(g))
+                                                      if self.closed else None))
                 st = ObserverStage(obs, self.latency, self.out[ch0:c1], self.sensed[row0:row0 + n * n_seg],
                                    self.estimated_amp[ch0:c1])
                 self.observer_stages.append((g.name, st, g, ch0))
@@ -241,8 +243,8 @@ class Rig:
             # the model's tip per commanded volt under the assumed finger (amplifier included)
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
-            # each tone waits for its own channel's window, in whole blocks
-            window = -(-obs.windows[c_] // self.block)
+            # each tone waits for its own channel's window and its low-pass's memory, in whole blocks
+            window = -(-(obs.windows + obs.prefilter_memory)[c_] // self.block)
             rise = int(round(scene.control.rise_s * self.fs / self.block))
             beat, tau = self.models.nearest_modes(g, f)  # in turns per block and blocks
             beside = (beat * self.block / self.fs, tau * self.fs / self.block)

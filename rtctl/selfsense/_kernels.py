@@ -56,10 +56,10 @@ _LANES = 8
 
 @kernel
 def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring,
-                     i_solve, u_out, back, H, Hc, pick, resid, contact, lag, scale, est, wave, drive,
-                     sensed):
-    """One block: demodulate drive and currents, take each channel's image load (:func:`_pick_load`),
-    apply the observer, rebuild the tip waveform.
+                     i_solve, u_out, back, H, Hc, pick, resid, contact, lag, scale, est, wave, pf, pf_z,
+                     pf_x, pf_g, drive, sensed):
+    """One block: low-pass drive and currents (:func:`_prefilter`), demodulate them, take each
+    channel's image load (:func:`_pick_load`), apply the observer, rebuild the tip waveform.
 
     Parameters
     ----------
@@ -94,6 +94,13 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
         Written: estimate phasors (real, imaginary) over the last complete window.
     wave : ndarray, shape (n_ch, n)
         Written: tip deflection rebuilt from the row-0 estimates on this block's samples, m.
+    pf, pf_z, pf_x : ndarray, shapes (n_ch * (1 + n_seg), 5), (..., 2), (..., n)
+        The low-pass of drive (rows ``0 .. n_ch - 1``) and currents (then rows ``ch * n_seg +
+        seg``): coefficients, state and the filtered block (:func:`_prefilter`). The observer
+        matrices take its response at each tone out of the estimates.
+    pf_g : ndarray, shape (n_ch, n_tones, 2)
+        ``1 / |G|`` and ``arg G`` of that response at each tone (1 and 0 unfiltered): ``u_out``
+        is the drive's, as sent.
     drive : ndarray, shape (n_ch, n)
         Drive volts written to the DAC for this block.
     sensed : ndarray, shape (n_ch * n_seg, n)
@@ -104,8 +111,15 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     int
         0, or ``STATUS_NONFINITE`` if any estimate is NaN/Inf.
     """
-    _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out)
-    _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, sensed)
+    n_d = drive.shape[0]
+    _prefilter(pf, pf_z, drive, pf_x, 0)
+    _prefilter(pf, pf_z, sensed, pf_x, n_d)
+    _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, pf_x[:n_d], u_out)
+    for c in range(u_out.shape[0]):
+        for k in range(u_out.shape[1]):
+            u_out[c, k, 0] *= pf_g[c, k, 0]
+            u_out[c, k, 1] -= pf_g[c, k, 1]
+    _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, pf_x[n_d:])
     if Hc.shape[2] > 1:
         _pick_load(u_acc, i_acc, H, Hc, pick, resid, contact, lag, scale)
     n_ch, n_t, n_est = est.shape[0], est.shape[1], est.shape[2]
@@ -138,6 +152,33 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
                     status |= STATUS_NONFINITE
     _rebuild(u_ref, est, back, wave)
     return status
+
+
+@kernel
+def _prefilter(pf, z, x, y, r0):
+    """Row ``r`` of ``x`` through biquad ``r0 + r`` into ``y[r0 + r]`` (transposed direct form
+    II, as ``scipy.signal.lfilter``): ``pf[r0 + r] = (b0, b1, b2, a1, a2)``, ``a0 = 1``; ``z[r0 +
+    r]`` its two states, carried from block to block. A row of ``(1, 0, 0, 0, 0)`` is copied.
+    A non-finite reading goes through as one non-finite sample and clears the state (a state
+    that held it would poison every later sample, where the lock-in forgets it after a window)."""
+    for r in range(x.shape[0]):
+        q = r0 + r
+        b0, b1, b2, a1, a2 = pf[q, 0], pf[q, 1], pf[q, 2], pf[q, 3], pf[q, 4]
+        if b0 == 1.0 and b1 == 0.0 and b2 == 0.0 and a1 == 0.0 and a2 == 0.0:
+            for n in range(x.shape[1]):
+                y[q, n] = x[r, n]
+            continue
+        z0, z1 = z[q, 0], z[q, 1]
+        for n in range(x.shape[1]):
+            xn = x[r, n]
+            yn = b0 * xn + z0
+            z0 = b1 * xn - a1 * yn + z1
+            z1 = b2 * xn - a2 * yn
+            if not (np.isfinite(z0) and np.isfinite(z1)):
+                z0 = 0.0
+                z1 = 0.0
+            y[q, n] = yn
+        z[q, 0], z[q, 1] = z0, z1
 
 
 @kernel

@@ -6,6 +6,7 @@ import math
 from fractions import Fraction
 
 import numpy as np
+import scipy.signal
 
 from rtctl.dsp.lockin import MAX_LSQ_COND, LockIn, lsq_gram
 from rtctl.errors import ModelError
@@ -13,7 +14,8 @@ from rtctl.selfsense import _kernels
 from rtctl.selfsense.observer import EST_NAMES, MAX_COND, N_EST, design_many
 from rtctl.selfsense.tmm import _load_stiffness
 
-__all__ = ["Observer", "ObserverRows", "observer_process", "short_windows", "tone_window", "tone_windows"]
+__all__ = ["Observer", "ObserverRows", "observer_process", "prefilter_cutoffs",
+           "short_windows", "tone_window", "tone_windows"]
 
 #: ``observer_process(*obs.args, drive, sensed) -> int`` (callable from other numba functions).
 observer_process = _kernels.observer_process
@@ -231,6 +233,40 @@ def short_windows(freqs, fs, block, max_seconds=1.0, max_cond=MAX_LSQ_COND, shor
     return windows, lstsq, hop
 
 
+#: A closed-loop channel's drive and currents are low-passed at this fraction of the loaded beam's
+#: lowest mode (:func:`prefilter_cutoffs`): a finger landing rings that mode, far above a low
+#: tone (742 Hz against 80 Hz on a half-damped beam under a stiff finger), and a window of one
+#: period passes the ring into the tone's reading, where its current, which goes with velocity,
+#: counts 9 times; over the 30 ms after such a landing the 80 Hz estimate was 37 % rms off the
+#: tip (82 % at worst), low-passed at 240 Hz 8 % (18 %), at 160 Hz 10 %, at 480 Hz 14 %
+PREFILTER_AT = 0.45
+#: ... for the channels whose highest tone is at most 1 / this of the cutoff: a tone near the ring
+#: gains little, and waits for the filter's memory all the same (120 and 500 Hz low-passed at 3x
+#: their tone started 4-12 ms later, past their 50 ms, bench/control_sweep.py --quick)
+PREFILTER_X = 3.0
+#: ... and a cutoff under this fraction of the sample rate
+PREFILTER_MAX = 0.4
+#: A closed-loop tone waits for the low-pass's memory as for its window: until its impulse
+#: response has fallen to this of its peak (240 Hz: 2.5 ms)
+PREFILTER_DECAY = 0.1
+
+
+def prefilter_cutoffs(freqs, fs, lowest_mode, at=PREFILTER_AT, x=PREFILTER_X, most=PREFILTER_MAX) -> np.ndarray:
+    """Per channel, the drive's and currents' low-pass cutoff (Hz) for :class:`Observer`'s
+    ``prefilter``: ``at`` times ``lowest_mode`` (Hz: the loaded beam's lowest mode, whose ring the
+    filter is for), where the channel's highest tone is at most ``1 / x`` of that and the cutoff
+    under ``most * fs``; else 0 (none).
+
+    >>> prefilter_cutoffs([[80.0, 0.0], [35.0, 45.0], [120.0, 0.0], [0.0, 0.0]], 48000.0, 600.0).tolist()
+    [270.0, 270.0, 0.0, 0.0]
+    """
+    f = np.atleast_2d(np.asarray(freqs, dtype=float))
+    top = np.where(np.isfinite(f), f, 0.0).max(axis=1)
+    fc = at * float(lowest_mode)
+    ok = (top > 0) & (x * top <= fc) & (fc < most * fs)
+    return np.where(ok, fc, 0.0)
+
+
 class Observer:
     """Self-sensing observer for ``n_channels`` identical bimorphs, one block at a time.
 
@@ -274,6 +310,11 @@ class Observer:
         Further loads the images may see (None: a free tip, the finger lifted): each channel reads
         its currents through the candidate whose observer leaves the least tip-moment residual
         most often (:func:`~rtctl.selfsense._kernels._pick_load`), starting with ``image_load``.
+    prefilter : float or array_like, shape (n_channels,), optional
+        Low-pass the channel's drive and currents before the lock-ins (second-order Butterworth,
+        cutoff Hz; 0 or None: not): a ring of the beam above the tones then leaks less into their
+        reading (:func:`prefilter_cutoffs`). Its response at each tone is divided out of the
+        observer matrices and the drive's reading, so steady estimates are unchanged.
     max_cond : float
         Refuse ill-conditioned frequencies (also for four segments, whose tip estimate is less
         fragile than the support stiffness that :func:`~rtctl.selfsense.observer.design` guards
@@ -303,6 +344,14 @@ class Observer:
         Per tone, for the kernel's force test: the candidate without a finger (-1: none), the
         least impedance the others put on the tip, squared (N^2/m^2), and the free beam's tip per
         drive volt, squared (m^2/V^2).
+    prefilter : ndarray, shape (n_channels,)
+        Each channel's low-pass cutoff, Hz (0: none).
+    prefilter_gain : ndarray, shape (n_channels, n_tones), complex
+        Its response at each tone (1: none).
+    prefilter_memory : ndarray of int64, shape (n_channels,)
+        Samples its impulse response takes to fall for good to :data:`PREFILTER_DECAY` of its peak
+        (0: none): what a
+        window must wait for beyond its own length to hold nothing older than itself.
     lag : ndarray, shape (n_channels,)
         The votes' smoothing per block: ``block`` over half the channel's window, or over
         :data:`LOAD_LAG_S`, whichever is longer.
@@ -330,7 +379,7 @@ class Observer:
     """
 
     def __init__(self, beam, freqs, fs, block, frontend=None, window=None, image_load=None,
-                 max_cond=MAX_COND, wave=None, hop=None, lstsq=False, image_loads=()):
+                 max_cond=MAX_COND, wave=None, hop=None, lstsq=False, image_loads=(), prefilter=None):
         f = np.atleast_2d(np.asarray(freqs, dtype=float))
         f = np.where(np.isfinite(f), f, 0.0)
         if np.any(f < 0) or np.any(f >= fs / 2):
@@ -387,6 +436,7 @@ class Observer:
         # the load's choice (``_pick_load``) sums once for all of them
         if not np.array_equal(self.Hc[:, :, :, :, 1:], np.repeat(self.Hc[:, :, :1, :, 1:], len(loads), axis=2)):
             raise ModelError("observer designs for other image loads differ in the currents' columns")
+        self._prefilter_design(prefilter)
         self.H[...] = self.Hc[:, :, 0]
         # the free candidate's force test (``_kernels._pick_load``): at each tone, which candidate
         # has no finger, the least squared impedance the others put on the tip, and the squared
@@ -404,6 +454,8 @@ class Observer:
                 self.contact[at, _kernels.C_FREE] = free[0]
                 self.contact[at, _kernels.C_Z2] = z2
                 self.contact[at, _kernels.C_G2] = g2
+            # the force test weighs the window's drive, read through the low-pass
+            self.contact[:, :, _kernels.C_G2] /= np.abs(self.prefilter_gain) ** 2
         try:
             self.lock_u = LockIn(n_ch, f, fs, self.windows, hop=self.hop, lstsq=self.lstsq)
             self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, np.repeat(self.windows, n_seg),
@@ -420,11 +472,51 @@ class Observer:
         self.u_out = np.zeros((n_ch, n_t, 2))
         self._back = np.zeros((4 + self.block, n_ch * n_t))  # the waveform rebuild's scratch
 
+    def _prefilter_design(self, prefilter) -> None:
+        """The low-pass of each channel's drive and currents (second-order Butterworth at
+        ``prefilter`` Hz, 0: none), and its response ``G`` at each tone taken out of ``Hc`` and of
+        the drive's amplitude and phase: in steady state, estimates and drive read as without it.
+        Drive and currents go through the same filter, so that a window over a drive step sees
+        both as late (the estimate cancels a large drive term against the currents')."""
+        n_ch, n_seg, n_t = self.n_channels, self.n_seg, self.n_tones
+        fc = np.zeros(n_ch) if prefilter is None else np.asarray(prefilter, dtype=float)
+        if fc.ndim == 0:
+            fc = np.full(n_ch, float(fc))
+        if fc.shape != (n_ch,) or not np.all(np.isfinite(fc)) or np.any(fc < 0) or np.any(fc >= self.fs / 2):
+            raise ModelError(f"prefilter must be cutoffs in 0 <= fc < fs/2 = {self.fs / 2:g} Hz (0: none), "
+                             f"one for all or one per channel ({n_ch}); got {prefilter!r}")
+        self.prefilter = fc
+        self.prefilter_memory = np.zeros(n_ch, dtype=np.int64)
+        rows = n_ch * (1 + n_seg)
+        self._pf = np.zeros((rows, 5))
+        self._pf[:, 0] = 1.0
+        self._pf_z = np.zeros((rows, 2))
+        self._pf_x = np.zeros((rows, self.block))
+        self._pf_g = np.zeros((n_ch, n_t, 2))
+        self._pf_g[:, :, 0] = 1.0
+        self.prefilter_gain = np.ones((n_ch, n_t), dtype=complex)
+        for c in np.flatnonzero(fc > 0):
+            b, a = scipy.signal.butter(2, fc[c], fs=self.fs)
+            coef = (b[0], b[1], b[2], a[1], a[2])
+            self._pf[c] = coef
+            self._pf[n_ch + c * n_seg:n_ch + (c + 1) * n_seg] = coef
+            # its impulse response, past where its envelope exp(-wc t / sqrt 2) is far below the decay
+            h = np.abs(scipy.signal.lfilter(b, a, np.r_[1.0, np.zeros(int(self.fs / fc[c] * 2.0) + 8)]))
+            self.prefilter_memory[c] = np.flatnonzero(h > PREFILTER_DECAY * h.max())[-1] + 1
+            for k in np.flatnonzero(self.freqs[c] > 0):
+                g = scipy.signal.freqz(b, a, worN=[self.freqs[c, k]], fs=self.fs)[1][0]
+                self.prefilter_gain[c, k] = g
+                self._pf_g[c, k] = (1.0 / abs(g), np.angle(g))
+                h = (self.Hc[c, k, ..., 0] + 1j * self.Hc[c, k, ..., 1]) / g
+                self.Hc[c, k, ..., 0] = h.real
+                self.Hc[c, k, ..., 1] = h.imag
+
     @property
     def args(self) -> tuple:
         """Kernel arguments: ``observer_process(*args, drive, sensed)``."""
         return (*self.lock_u.args, *self.lock_i.args, self.u_out, self._back, self.H, self.Hc,
-                self.pick, self.resid, self.contact, self.lag, self.scale, self.est, self.wave)
+                self.pick, self.resid, self.contact, self.lag, self.scale, self.est, self.wave,
+                self._pf, self._pf_z, self._pf_x, self._pf_g)
 
     def process(self, drive, sensed) -> int:
         """Advance by one block.
@@ -451,6 +543,7 @@ class Observer:
         """Empty windows, references at phase 0, every channel back on the first image load."""
         self.lock_u.reset()
         self.lock_i.reset()
+        self._pf_z[:] = 0.0
         if self.Hc.shape[2] > 1:
             self.H[...] = self.Hc[:, :, 0]
             self.pick[:] = 0
@@ -496,6 +589,8 @@ class ObserverRows:
     freqs, windows, scale, H, Hc, pick, resid, contact, lag, cond, est, wave, u_out
         The observer's, rows ``c0:c1`` (``u_out``: the drive's amplitude (peak, V) and phase (rad)
         per tone slot, shape (n_channels, n_tones, 2)).
+    prefilter, prefilter_gain, prefilter_memory
+        The observer's low-pass, rows ``c0:c1``.
     window : int
         The longest of these channels' windows, samples.
     """
@@ -508,7 +603,7 @@ class ObserverRows:
         for name in ("beam", "fs", "block", "frontend", "designs", "n_tones", "n_seg", "image_loads"):
             setattr(self, name, getattr(observer, name))
         for name in ("freqs", "windows", "scale", "H", "Hc", "pick", "resid", "contact", "lag", "cond", "est",
-                     "wave"):
+                     "wave", "prefilter", "prefilter_gain", "prefilter_memory"):
             setattr(self, name, getattr(observer, name)[rows])
         self.u_out = observer.u_out[rows]
         self.u_acc = observer.lock_u.acc
