@@ -350,8 +350,7 @@ class Observer:
         Its response at each tone (1: none).
     prefilter_memory : ndarray of int64, shape (n_channels,)
         Samples its impulse response takes to fall for good to :data:`PREFILTER_DECAY` of its peak
-        (0: none): what a
-        window must wait for beyond its own length to hold nothing older than itself.
+        (0: none): what a window must wait for beyond its own length to hold nothing older.
     lag : ndarray, shape (n_channels,)
         The votes' smoothing per block: ``block`` over half the channel's window, or over
         :data:`LOAD_LAG_S`, whichever is longer.
