@@ -79,6 +79,18 @@ def test_observer_refuses_an_ill_conditioned_design(monkeypatch):
         build(scene.load("line-bimorph-5", ["control.observe=true"]))
 
 
+def test_only_the_closed_loop_low_passes_its_low_tones():
+    """Observing alone reports the observer's plain reading of every tone (the accuracy figures
+    of docs/selfsense.md); the low-pass is the closed loop's, for its tones far below the loaded
+    beam's lowest mode."""
+    from rtctl.engine.rig import build
+
+    for mode, want in (("control.observe=true", []), ("control.mode=closed", [0, 1, 2])):
+        obs = build(scene.load("line-bimorph-5", [mode])).observer_stages[0][1].observer
+        assert np.flatnonzero(obs.prefilter).tolist() == want, mode
+        assert np.all(obs.prefilter_memory[obs.prefilter == 0] == 0)
+
+
 def test_closed_loop_each_channel_observes_over_its_own_tones():
     """Closed loop: one observer stage for the group, yet each channel's estimate is the direct sum
     over whole periods of its own tone only, on the drive and currents the loop really had (the
