@@ -89,6 +89,8 @@ def test_only_the_closed_loop_low_passes_its_low_tones():
         obs = build(scene.load("line-bimorph-5", [mode])).observer_stages[0][1].observer
         assert np.flatnonzero(obs.prefilter).tolist() == want, mode
         assert np.all(obs.prefilter_memory[obs.prefilter == 0] == 0)
+        # observing alone keeps no filter rows: its block step copies nothing
+        assert (obs.args[-4].shape[0] == 0) == (not want), mode
 
 
 def test_closed_loop_each_channel_observes_over_its_own_tones():

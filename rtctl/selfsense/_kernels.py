@@ -97,7 +97,8 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     pf, pf_z, pf_x : ndarray, shapes (n_ch * (1 + n_seg), 5), (..., 2), (..., n)
         The low-pass of drive (rows ``0 .. n_ch - 1``) and currents (then rows ``ch * n_seg +
         seg``): coefficients, state and the filtered block (:func:`_prefilter`). The observer
-        matrices take its response at each tone out of the estimates.
+        matrices take its response at each tone out of the estimates. No rows: no channel is
+        low-passed, and drive and currents go to the lock-ins as they are.
     pf_g : ndarray, shape (n_ch, n_tones, 2)
         ``1 / |G|`` and ``arg G`` of that response at each tone (1 and 0 unfiltered): ``u_out``
         is the drive's, as sent.
@@ -111,15 +112,19 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     int
         0, or ``STATUS_NONFINITE`` if any estimate is NaN/Inf.
     """
-    n_d = drive.shape[0]
-    _prefilter(pf, pf_z, drive, pf_x, 0)
-    _prefilter(pf, pf_z, sensed, pf_x, n_d)
-    _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, pf_x[:n_d], u_out)
-    for c in range(u_out.shape[0]):
-        for k in range(u_out.shape[1]):
-            u_out[c, k, 0] *= pf_g[c, k, 0]
-            u_out[c, k, 1] -= pf_g[c, k, 1]
-    _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, pf_x[n_d:])
+    if pf.shape[0] == 0:  # no channel low-passed: the lock-ins read the block as it came
+        _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out)
+        _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, sensed)
+    else:
+        n_d = drive.shape[0]
+        _prefilter(pf, pf_z, drive, pf_x, 0)
+        _prefilter(pf, pf_z, sensed, pf_x, n_d)
+        _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, pf_x[:n_d], u_out)
+        for c in range(u_out.shape[0]):
+            for k in range(u_out.shape[1]):
+                u_out[c, k, 0] *= pf_g[c, k, 0]
+                u_out[c, k, 1] -= pf_g[c, k, 1]
+        _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, pf_x[n_d:])
     if Hc.shape[2] > 1:
         _pick_load(u_acc, i_acc, H, Hc, pick, resid, contact, lag, scale)
     n_ch, n_t, n_est = est.shape[0], est.shape[1], est.shape[2]

@@ -486,7 +486,9 @@ class Observer:
                              f"one for all or one per channel ({n_ch}); got {prefilter!r}")
         self.prefilter = fc
         self.prefilter_memory = np.zeros(n_ch, dtype=np.int64)
-        rows = n_ch * (1 + n_seg)
+        # an observer without a low-passed channel keeps no rows: its block step reads drive and
+        # currents as they are, copying nothing
+        rows = n_ch * (1 + n_seg) if np.any(fc > 0) else 0
         self._pf = np.zeros((rows, 5))
         self._pf[:, 0] = 1.0
         self._pf_z = np.zeros((rows, 2))
