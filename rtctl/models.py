@@ -372,7 +372,8 @@ class Models:
             from .plant.frontend import Amplifier, CurrentSense
 
             plant = BimorphPlant(self.beam(group), Amplifier(group.amplifier.bandwidth),
-                                 CurrentSense(group.sense.shunt, group.sense.aa_cutoff), finger,
+                                 CurrentSense(group.sense.shunt, group.sense.aa_cutoff, group.sense.aa_order),
+                                 finger,
                                  n_modes=self.plant_modes(group))
             ev = np.linalg.eigvals(plant.sys.A)
             osc = ev[(ev.imag > 1e-6 * np.abs(ev)) & (ev.real < 0)]

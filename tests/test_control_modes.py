@@ -45,3 +45,25 @@ def test_the_nearest_loaded_mode_is_the_continuum_beams_resonance(tone):
         assert nearest == pytest.approx(585.0, abs=6.0)
         as_set = [_peak(beam, load, 300.0, 1600.0) for load in [m.finger(g), *m.other_fingers(g)]]
         assert min(abs(p - tone) for p in as_set) > 120.0
+
+
+@pytest.mark.parametrize("order", [2, 4, 5])
+def test_the_loaded_modes_hold_the_sense_chains_filter_of_the_scenes_order(order):
+    """The plant the loaded modes come from has the scene's anti-alias filter: its oscillating
+    poles are the analog Butterworth's of ``sense.aa_order`` at ``sense.aa_cutoff``
+    (scipy.signal.butter), each pair once per sensed segment (each has its filter)."""
+    import scipy.signal
+
+    fc = 9e3
+    s = scene.load("line-bimorph-5-closed", [f"actuator.lateral.sense.aa_order={order}",
+                                             f"actuator.lateral.sense.aa_cutoff={fc:g}"])
+    m = Models(s)
+    g = s.actuator[0]
+    f, tau = m.loaded_modes(g, m.finger(g))
+    z, p, k = scipy.signal.butter(order, 2.0 * np.pi * fc, analog=True, output="zpk")
+    pairs = p[p.imag > 1e-6 * np.abs(p)]
+    assert pairs.size == order // 2
+    for q in pairs:
+        hit = np.abs(f - q.imag / (2.0 * np.pi)) < 1e-6 * fc
+        assert hit.sum() == len(g.beam.segments)
+        assert tau[hit] == pytest.approx(np.full(hit.sum(), -1.0 / q.real), rel=1e-6)
