@@ -381,10 +381,10 @@ class Models:
 
         return self._get(("modes", group.name, finger), build)
 
-    def _spread_modes(self, group):
-        """``(f Hz, tau s)`` of every loaded mode under the loads of :meth:`nearest_modes`."""
-        import numpy as np
-
+    def spread_loads(self, group) -> list:
+        """Every load a closed loop of bimorph ``group`` allows for: :meth:`finger`,
+        :meth:`other_fingers` (None: lifted), each finger also with its static stiffness
+        :data:`FINGER_SPREAD` times softer and stiffer (the scene's finger is a guess)."""
         from .plant.finger import MaxwellLoad
 
         loads = []
@@ -393,7 +393,13 @@ class Models:
             if load is not None:
                 loads += [MaxwellLoad(load.mass, load.k0 * x, load.branches)
                           for x in (1.0 / FINGER_SPREAD, FINGER_SPREAD)]
-        modes = [self.loaded_modes(group, load) for load in loads]
+        return loads
+
+    def _spread_modes(self, group):
+        """``(f Hz, tau s)`` of every loaded mode under the loads of :meth:`nearest_modes`."""
+        import numpy as np
+
+        modes = [self.loaded_modes(group, load) for load in self.spread_loads(group)]
         return tuple(np.concatenate(x) for x in zip(*modes))
 
     def lowest_mode(self, group) -> float:

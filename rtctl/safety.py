@@ -55,6 +55,7 @@ XRUN_BURST = 4096
 CONTROL_SATURATED = 8192
 CONTROL_FROZEN = 16384
 TRACE_DROPPED = 32768  # a trace placeholder: the loop dropped this block's record (ring full)
+CONTROL_FLOOR = 65536
 
 #: Status bits that end a run (outputs fade to zero first).
 FAULTS = NONFINITE | OVERTEMP | PLANT_NONFINITE | DEVICE_LOST | XRUN_BURST
@@ -76,6 +77,9 @@ STATUS_NAMES = {
     CONTROL_SATURATED: "amplitude control saturated (a target needs more than the channel's max_voltage)",
     CONTROL_FROZEN: "amplitude control frozen (no usable estimate: drive held, never raised)",
     TRACE_DROPPED: "trace record dropped (the trace ring was full; the block itself ran)",
+    CONTROL_FLOOR: ("amplitude control held at its floor (the estimate asked for less drive than any load the "
+                    "model knows needs for the target: for a moment, a ring after an event; for long, an estimate "
+                    "that does not follow the tip, e.g. a target under the self-sensing noise floor; see floor_s)"),
 }
 
 #: Shapes of a shutdown fade (``fade[2]``): linear (a fault: the shortest fade the slew bound

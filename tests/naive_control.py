@@ -25,12 +25,15 @@ from rtctl.control._kernels import (
     GAIN,
     GHAT,
     GLIVE,
+    GTOP,
     HOLD,
     HOLD0,
     HOLDMAX,
     LASTDIR,
     LIMSEEN,
     LIVE_DRIVE,
+    LOW,
+    LOWN,
     MAX_STEP,
     NALL,
     NOISE_Z,
@@ -75,7 +78,7 @@ from rtctl.control._kernels import (
     WARM,
 )
 from rtctl.dsp._kernels import P_AMP, P_FLAG, P_RAMP
-from rtctl.safety import CONTROL_FROZEN, CONTROL_SATURATED
+from rtctl.safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
 
 
 def _pace_anew(col):
@@ -114,6 +117,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         b = index[BANK, i]
         col = state[:, i]
         if target[ENABLE, i] == 0:
+            col[LOW] = 0.0
             if col[ON]:
                 stepped[i] = True
                 col[ON] = col[CMD] = col[OUT] = 0.0
@@ -232,6 +236,9 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             if not 1 / BIG_STEP <= step <= BIG_STEP and col[RISE] > 1:
                 col[A0], col[RISEK], rising = col[OUT], 0.0, True
                 col[WAIT] += col[RISE] - 1
+        floor = r / col[GTOP]
+        col[LOW] = float(a < floor < col[AMAX])
+        a = max(a, floor)
         if a >= col[AMAX]:
             a = col[AMAX]
             col[SAT] = 1.0 if (col[EST] < r or col[WAIT] > 0) else 0.0
@@ -248,4 +255,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = a, ramp, 1.0
     _others_wait(state, index, stepped)
     state[STEPPED] = stepped
+    state[LOWN] += state[LOW] != 0
+    if np.any(state[LOW]):
+        status |= CONTROL_FLOOR
     return status

@@ -38,14 +38,17 @@ class PerChannelRig(Rig):
             if not cols:
                 continue
             c_, slot, bank, chan, f, target, amax = (np.array(x) for x in zip(*cols))
-            tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
+            amp = np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
+            tip = np.abs(obs.beam.response(f, finger)["tip"]) / amp
+            top = np.max([np.abs(obs.beam.response(f, load)["tip"]) for load in self.models.spread_loads(g)],
+                         axis=0) / amp
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
             rise = int(round(scene.control.rise_s * self.fs / self.block))
             beat, tau = self.models.nearest_modes(g, f)
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
                                       -(-(obs.window + int(obs.prefilter_memory.max())) // self.block), self.block,
                                       ring, rise,
-                                      (beat * self.block / self.fs, tau * self.fs / self.block))
+                                      (beat * self.block / self.fs, tau * self.fs / self.block), np.maximum(top, tip))
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)

@@ -14,6 +14,7 @@ from rtctl.control._kernels import (
     HOLD,
     HOLD0,
     HOLDMAX,
+    LOW,
     MAX_STEP,
     NSTR,
     ON,
@@ -29,8 +30,9 @@ from rtctl.control._kernels import (
     WAIT,
     WARM,
 )
+from rtctl.control.amplitude import FLOOR_MARGIN
 from rtctl.dsp._kernels import N_PEND, P_AMP
-from rtctl.safety import CONTROL_FROZEN, CONTROL_SATURATED
+from rtctl.safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
 
 BLOCK = 32
 
@@ -234,6 +236,53 @@ def test_kernel_matches_its_naive_twin(seed):
         waited += bool(np.any((ctl.state[WAIT] > wait) & (ctl.state[CMD] == cmd)))  # another tone's change
     assert grown > 0 or seed == 0  # seed 0 has no ring: its stretches cannot grow
     assert ends > 0 and waited > 0, (ends, waited)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_floor_matches_its_naive_twin(seed):
+    """Tones whose estimates do not follow their drive (noise of the tip's size, whatever the
+    command) and tones on a plant that does, some targets moving: kernel and twin agree block by
+    block, the floor holds some of them (status ``CONTROL_FLOOR``), and no command falls below
+    its floor."""
+    rng = np.random.default_rng(100 + seed)
+    n = 6
+    model = rng.uniform(1e-8, 1e-6, n)
+    top = model * rng.uniform(1.0, 2.0, n)
+    ctl = AmplitudeController(np.arange(n), np.zeros(n, int), np.arange(n), np.arange(n), model,
+                              np.full(n, 150.0), rng.uniform(1e-7, 5e-6, n), 1, 3, BLOCK, ring=(0, 30, 60)[seed],
+                              rise=(0, 1, 5)[seed], gain_top=top)
+    ctl.target[ENABLE] = 1.0
+    twin = [a.copy() for a in (ctl.index, ctl.target, ctl.state)]
+    pend_k, pend_n = np.zeros((N_PEND, n)), np.zeros((N_PEND, n))
+    lim = np.zeros((3, n), dtype=np.int64)
+    plant = model * rng.uniform(0.5, 2.0, n)
+    deaf = np.arange(n) % 2 == 0  # estimates: noise at twice the target, whatever the drive
+    floored, scale = 0, 0.0
+    for k in range(1500):
+        r = ctl.target[TARGET]
+        est = np.zeros((n, 1, 9, 2))
+        y = np.where(deaf, 2.0 * r * rng.uniform(0.8, 1.2, n), plant * pend_k[P_AMP] * rng.uniform(0.99, 1.01, n))
+        est[:, 0, 0, 0] = y
+        drive_est = np.zeros((n, 1, 2))
+        drive_est[:, 0, 0] = pend_k[P_AMP]
+        if k % 300 == 299:
+            j = rng.integers(n)
+            ctl.target[TARGET, j] = twin[1][TARGET, j] = rng.uniform(1e-7, 5e-6)
+        sk = amplitude_control(est, drive_est, ctl.index, ctl.target, ctl.state, pend_k, lim, float(BLOCK))
+        sn = naive(est, drive_est, twin[0], twin[1], twin[2], pend_n, lim, float(BLOCK))
+        assert sk == sn
+        rows = ~np.isin(np.arange(ctl.state.shape[0]), (REFV, P1V))  # (variances by subtraction: as above)
+        np.testing.assert_allclose(ctl.state[rows], twin[2][rows], rtol=1e-12, atol=0)
+        scale = max(scale, np.max(twin[2][REF]) ** 2)
+        np.testing.assert_allclose(ctl.state[[REFV, P1V]], twin[2][[REFV, P1V]], rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(pend_k, pend_n, rtol=1e-12, atol=0)
+        assert np.all(ctl.state[CMD] >= ctl.target[TARGET] / (FLOOR_MARGIN * top) * (1 - 1e-12))
+        assert bool(sk & CONTROL_FLOOR) == bool(np.any(ctl.state[LOW]))
+        floored += bool(np.any(ctl.state[LOW]))
+    assert floored > 0
+    assert not np.any(ctl.state[LOW, ~deaf])  # a plant that follows its drive never reaches it
+    np.testing.assert_allclose(ctl.state[CMD, deaf], ctl.target[TARGET, deaf] / (FLOOR_MARGIN * top[deaf]),
+                               rtol=1e-12)
 
 
 def test_a_ripple_is_averaged_out_not_chased():

@@ -4,7 +4,7 @@ import math
 
 from .._numba import kernel
 from ..dsp._kernels import P_AMP, P_FLAG, P_RAMP
-from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
+from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
 
 # state rows, one column per controlled tone
 (CMD,     # commanded amplitude, V peak (what the oscillator ramps to)
@@ -53,8 +53,11 @@ from ..safety import CONTROL_FROZEN, CONTROL_SATURATED
  SPREV,   # the steady amplitude the last stretch extrapolated, m (0: none)
  SLOW,    # 1: a loaded mode rings beside the tone, turning less than half a beat per stretch
  STEPPED,  # 1: the drive changed by more than AGREE in this block (its channel's other tones wait)
- ) = range(46)
-N_STATE = 46
+ GTOP,    # the most tip per volt a device may have at the tone, m/V (inf: no floor; see LOW)
+ LOW,     # 1: the command is held at the floor, target / GTOP (the estimate asked for less)
+ LOWN,    # blocks the command has been held at the floor since the controller's reset
+ ) = range(49)
+N_STATE = 49
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -253,6 +256,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         state[STEPPED, i] = 0.0
         b = index[BANK, i]
         if target[ENABLE, i] == 0.0:
+            state[LOW, i] = 0.0
             if state[ON, i] != 0.0:  # switched off: ramp to silence
                 state[STEPPED, i] = 1.0
                 state[ON, i] = 0.0
@@ -427,6 +431,16 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 state[RISEK, i] = 0.0
                 state[WAIT, i] += state[RISE, i] - 1.0
                 rising = True
+        # the floor: no device the model allows needs less drive for the target than this. An
+        # estimate that still reads the tip above the target there does not see the tip (current
+        # noise over a tip below what the observer resolves reads as a tip that stays put while
+        # every correction divides the drive: without the floor the drive fell to 1e-16 V)
+        floor = r / state[GTOP, i]
+        state[LOW, i] = 0.0
+        if a < floor:
+            a = floor
+            # (a floor over AMAX: no load reaches the target, and the command saturates below)
+            state[LOW, i] = 1.0 if floor < state[AMAX, i] else 0.0
         if a >= state[AMAX, i]:
             a = state[AMAX, i]
             state[SAT, i] = 1.0 if (state[EST, i] < r or state[WAIT, i] > 0.0) else 0.0
@@ -445,4 +459,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         pending[P_RAMP, b] = ramp
         pending[P_FLAG, b] = 1.0
     _siblings_wait(state, index)
+    for i in range(n):  # every block a tone is held at its floor, waiting or not
+        if state[LOW, i] != 0.0:
+            state[LOWN, i] += 1.0
+            status |= CONTROL_FLOOR
     return status

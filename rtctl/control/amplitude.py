@@ -54,7 +54,10 @@ Saturation: the command never exceeds the tone's share of ``max_voltage`` (the s
 command, so there is nothing to wind up) and does not grow while the limiter holds the channel
 (slew, current, thermal, DC bounds). A non-finite or zero estimate holds the command and raises
 ``CONTROL_FROZEN``: the drive is never raised on a bad estimate. Recovery after a saturation or an
-event is one correction step once the target is reachable.
+event is one correction step once the target is reachable. The floor: the command never falls
+below the target over ``FLOOR_MARGIN`` (4) times the most tip per volt any load the model knows
+allows (``gain_top``); a tone held there raises ``CONTROL_FLOOR``: its estimate is not following
+the tip (a tip under the observer's noise floor reads as the noise, which no drop of drive moves).
 """
 
 from __future__ import annotations
@@ -68,6 +71,7 @@ from ._kernels import (
     ENABLE,
     FF,
     GAIN,
+    GTOP,
     HOLD,
     HOLD0,
     HOLDMAX,
@@ -90,6 +94,13 @@ from ._kernels import (
 #: a soft finger (a mode 70-90 Hz away, 0.24-0.3 turns per 4-5 block stretch), which hunted
 #: there for 300 ms
 SLOW_TURNS = 0.5
+#: the floor of a tone's drive is its target over this many times the most tip per volt any
+#: load the model knows allows (the finger lifted, its sets, each 3x softer and stiffer): room
+#: for a device off its model (a mode 5 % nearer the tone, half the damping) that a closed loop
+#: never needs in the sweeps, and a bound on the drive an estimate that does not follow the tip
+#: can ask for (current noise over a tip below what the observer resolves: each correction
+#: divided the drive again, down to 1e-16 V, while the estimate stayed on the noise)
+FLOOR_MARGIN = 4.0
 
 
 def steady_blocks(window: int, ring: int) -> int:
@@ -158,6 +169,11 @@ class AmplitudeController:
         ring turns by less than ``SLOW_TURNS`` (half a turn) per stretch and outlasts one, two
         stretches whose amplitudes agree but whose phasors moved wait for a third, which tells
         where the ring ends (``SLOW``). None: no such mode.
+    gain_top : array_like, shape (n,), optional
+        Per tone, the most tip amplitude per volt any load the model knows allows, m/V (at least
+        ``gain_model``; inf: none). The drive never falls below the target over ``FLOOR_MARGIN`` times it: an
+        estimate that still reads the tip above the target there is not following the tip, and
+        the tone raises ``CONTROL_FLOOR`` while it holds the floor. None: no floor.
 
     Attributes
     ----------
@@ -169,7 +185,7 @@ class AmplitudeController:
     """
 
     def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
-                 latency: int, window, block: int, ring: int = 0, rise: int = 0, beside=None):
+                 latency: int, window, block: int, ring: int = 0, rise: int = 0, beside=None, gain_top=None):
         n = len(bank_index)
         self.n = n
         self.index = np.zeros((N_INDEX, n), dtype=np.int64)
@@ -184,6 +200,13 @@ class AmplitudeController:
         if np.any(~np.isfinite(g)) or np.any(g <= 0):
             raise ValueError("the model's tip amplitude per volt must be finite and > 0 for every tone")
         self._ff = 1.0 / g
+        self._gtop = np.full(n, np.inf)
+        if gain_top is not None:
+            top = np.broadcast_to(np.asarray(gain_top, dtype=float), (n,))
+            if np.any(~(top >= g)):
+                raise ValueError("the most tip per volt of any load must be at least the model's, per tone "
+                                 "(inf: no floor)")
+            self._gtop = FLOOR_MARGIN * top
         self._amax = np.asarray(max_amplitude, dtype=float)
         self.targets0 = np.asarray(targets, dtype=float)
         self.ring = max(0, int(ring))
@@ -220,6 +243,7 @@ class AmplitudeController:
         """Every tone off, targets back to the scene's; nothing commanded yet."""
         self.state[...] = 0.0
         self.state[FF] = self._ff
+        self.state[GTOP] = self._gtop
         self.state[AMAX] = self._amax
         self.state[GAIN] = self.gain
         self.state[WARM] = self.warm

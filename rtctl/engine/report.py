@@ -232,7 +232,7 @@ def _control(rig, rows) -> None:
     from the controllers' final state."""
     if not rig.controllers:
         return  # open loop: rtctl.control is neither needed nor imported
-    from ..control._kernels import BANK, CHANNEL, CMD, EST, OBS_CH, SAT
+    from ..control._kernels import BANK, CHANNEL, CMD, EST, LOWN, OBS_CH, SAT
 
     for _, st, ctl in rig.controllers:
         for j in range(ctl.n):
@@ -254,6 +254,11 @@ def _control(rig, rows) -> None:
                                       if rig.calibration else None)
             sat = bool(ctl.state[SAT, j])
             row["saturated"] = row.get("saturated", False) or sat
+            # how long it was held at the least drive any load the model knows allows, the
+            # estimate still above the target: the estimate was not following the tip
+            # (rtctl.control.amplitude); any time at all is worth a look
+            row["floor_s"] = max(row.get("floor_s", 0.0), float(ctl.state[LOWN, j]) * rig.block / rig.fs)
+            row["at_floor"] = row["floor_s"] > 0.0
             row.setdefault("command_v", {})[int(ctl.index[BANK, j])] = float(ctl.state[CMD, j])
             if sat:  # what the estimate shows at the cap (the run's final window), else the last one used
                 est = row.get("estimated_um")
@@ -366,6 +371,9 @@ def print_table(summary: dict) -> None:
             note = " (limited: " + ", ".join(r.get("limited_by") or ["?"]) + ")"
         else:
             note = ""
+        if r.get("at_floor"):
+            note += (f" (held at the drive's floor for {r['floor_s']:.3g} s: the estimate asked for less than any "
+                     "load needs)")
         print(f"{r['name']:<12}{(r['receptor'] or '-'):<10}{_fmt(r['freq_hz'], '9.1f')}{r['v_peak']:8.1f}"
               f"{_fmt(r['true_um'], '10.3g')}{_fmt(r['threshold_um'], '10.3g')}{_fmt(r['target_um'], '10.3g')}"
               f"{_fmt(r['error_pct'], '9.1f')}{_fmt(r['settle_ms'], '10.0f')}  {felt}{note}")

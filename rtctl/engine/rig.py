@@ -241,7 +241,11 @@ class Rig:
                 continue
             c_, slot, bank, chan, f, target, amax = (np.array(x) for x in zip(*cols))
             # the model's tip per commanded volt under the assumed finger (amplifier included)
-            tip = np.abs(obs.beam.response(f, finger)["tip"]) / np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
+            amp = np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
+            tip = np.abs(obs.beam.response(f, finger)["tip"]) / amp
+            # and under the most responsive load it allows for: the drive's floor
+            top = np.max([np.abs(obs.beam.response(f, load)["tip"]) for load in self.models.spread_loads(g)],
+                         axis=0) / amp
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
             # each tone waits for its own channel's window and its low-pass's memory, in whole blocks
             window = -(-(obs.windows + obs.prefilter_memory)[c_] // self.block)
@@ -249,7 +253,7 @@ class Rig:
             beat, tau = self.models.nearest_modes(g, f)  # in turns per block and blocks
             beside = (beat * self.block / self.fs, tau * self.fs / self.block)
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
-                                      ring, rise, beside)
+                                      ring, rise, beside, np.maximum(top, tip))
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
