@@ -216,3 +216,25 @@ def test_an_estimate_that_does_not_follow_the_tip_holds_the_drive_at_its_floor(t
     fs = summary["fs"]
     peaks = np.abs(drive[int(0.1 * fs):int(1.1 * fs)]).reshape(-1, int(0.05 * fs)).max(axis=1)  # 50 ms windows
     assert peaks.min() == pytest.approx(floor, rel=0.02)  # held there, never below
+
+
+def test_a_target_near_the_noise_floor_is_warned_of_before_the_run(tmp_path):
+    """20 times the scene's current noise (2e-5 V at the ADC over its 100 ohm shunt): the 250 Hz
+    tone's 0.16 um target is 3.2 times its estimate's noise floor (0.05 um rms over the 4 ms
+    window), under the 5 that keep the estimate's bias (a Rician mean, (floor / y)^2 / 4) within
+    1 %; the build says so in the run's warnings, for that channel alone, with the bias it
+    expects. The summary gives every controlled channel's floor, 20 times the scene's own."""
+    plain = build(scene.load("line-bimorph-5-closed"))
+    assert plain.warnings == []
+    s = scene.load("line-bimorph-5-closed", ["actuator.lateral.sense.noise=2e-5", "timing.duration=0.3", "events=[]"])
+    summary = run(s, out_dir=tmp_path, plot=False).summary
+    warned = [w for w in summary["warnings"] if "noise floor" in w]
+    assert len(warned) == 1, warned
+    assert warned[0].startswith("channel lateral.4: the 250 Hz target 0.16 um is 3.2 times"), warned
+    assert "reads high by about 2.4 %" in warned[0]
+    rows = {r["name"]: r for r in summary["channels"]}
+    assert rows["lateral.4"]["noise_um"] == pytest.approx(0.16 / 3.2, rel=0.02)
+    # the ADC's step (24 bits over +-1 V: 3.4 nV rms) is under 1 % of the scene's 1 uV noise
+    for name in ("lateral.0", "lateral.1", "lateral.2", "lateral.3", "lateral.4"):
+        base = 1e6 * plain.control_noise[int(np.flatnonzero(plain.bank.chan == int(name[-1]))[0])]
+        assert rows[name]["noise_um"] == pytest.approx(20.0 * base, rel=0.01)

@@ -101,6 +101,11 @@ SLOW_TURNS = 0.5
 #: can ask for (current noise over a tip below what the observer resolves: each correction
 #: divided the drive again, down to 1e-16 V, while the estimate stayed on the noise)
 FLOOR_MARGIN = 4.0
+#: a target at least this many times its estimate's noise floor (the rms the sense chain's noise
+#: leaves in it, :meth:`rtctl.selfsense.rt.Observer.noise_floor`) reads within 1 % on average
+#: (a noisy phasor's magnitude is biased high by about ``(floor / y)^2 / 4``, the Rician mean);
+#: a closer one is warned of when the rig is built
+NOISE_MARGIN = 5.0
 
 
 def steady_blocks(window: int, ring: int) -> int:

@@ -259,6 +259,9 @@ def _control(rig, rows) -> None:
             # (rtctl.control.amplitude); any time at all is worth a look
             row["floor_s"] = max(row.get("floor_s", 0.0), float(ctl.state[LOWN, j]) * rig.block / rig.fs)
             row["at_floor"] = row["floor_s"] > 0.0
+            # the rms its estimate's noise leaves in the amplitude (over its tones' sines)
+            n2 = (row.get("noise_um") or 0.0) ** 2 + (1e6 * rig.control_noise.get(int(ctl.index[BANK, j]), 0.0)) ** 2
+            row["noise_um"] = math.sqrt(n2)
             row.setdefault("command_v", {})[int(ctl.index[BANK, j])] = float(ctl.state[CMD, j])
             if sat:  # what the estimate shows at the cap (the run's final window), else the last one used
                 est = row.get("estimated_um")

@@ -96,6 +96,10 @@ class Rig:
         # what is observed, per group: (name, ObserverStage, group, first channel); controllers,
         # one per observed group with a controlled tone: (group name, its ObserverStage, controller)
         self.observers, self.controllers = [], []
+        #: what the build found that the run's summary should say (a target under the noise floor)
+        self.warnings = []
+        #: per controlled bank tone, the rms of its tip estimate's noise, m (Observer.noise_floor)
+        self.control_noise = {}
         if scene.control.observe or self.closed:
             self._build_observers(scene)
         if self.closed:
@@ -254,9 +258,31 @@ class Rig:
             beside = (beat * self.block / self.fs, tau * self.fs / self.block)
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
                                       ring, rise, beside, np.maximum(top, tip))
+            self._noise_floor(g, obs, c_, slot, bank, chan, f, target)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
+
+    def _noise_floor(self, g, obs, c_, slot, bank, chan, f, target) -> None:
+        """Each controlled tone's estimate noise from the group's current sense (its ADC's noise
+        and step, over the shunt), and a warning for a target within NOISE_MARGIN of it."""
+        from ..control.amplitude import NOISE_MARGIN
+
+        sense = g.sense
+        lsb = 2.0 * sense.full_scale / 2.0 ** sense.bits
+        floor = obs.noise_floor(math.sqrt(sense.noise ** 2 + lsb ** 2 / 12.0) / sense.shunt)
+        for c, k, b, ch, fk, r in zip(c_, slot, bank, chan, f, target):
+            noise = float(floor[c, k])
+            self.control_noise[int(b)] = noise
+            if r < NOISE_MARGIN * noise:
+                what = (f"the estimate reads high by about {25.0 * (noise / r) ** 2:.2g} %, and the loop holds the "
+                        "tip that much low" if r > 2.0 * noise else
+                        "the estimate is mostly that noise, and the loop cannot hold the tip there")
+                self.warnings.append(
+                    f"channel {self.channel_names[int(ch)]}: the {fk:g} Hz target {r * 1e6:.3g} um is "
+                    f"{r / noise:.2g} times the self-sensing noise floor there ({noise * 1e6:.2g} um rms over the "
+                    f"observer's window, from actuator.{g.name}.sense noise, bits and shunt): {what}; a target "
+                    f"at least {NOISE_MARGIN:g} times the floor reads within 1 %")
 
     def hold_control(self) -> None:
         """A requested stop: every amplitude controller holds its command from now on, so

@@ -193,7 +193,8 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         "deadline_misses": misses,
         **timing,
         "faults": faults,
-        "warnings": validity + [w for w in safety.describe(status_seen & ~safety.FAULTS & ~safety.DEADLINE_MISSED)],
+        "warnings": validity + rig.warnings + [w for w in safety.describe(status_seen & ~safety.FAULTS
+                                                                          & ~safety.DEADLINE_MISSED)],
         "build_s": build_s,
         # how the block ran: one composed function or stages from Python; cached kernels or not
         "block_function": rig.compose_note,

@@ -571,6 +571,36 @@ class Observer:
         """Online finger impedance per tone, tip force over tip velocity, N s/m (complex)."""
         return self.phasors("tip_force_n") / self.phasors("tip_velocity_m_s")
 
+    def noise_floor(self, current_rms: float) -> np.ndarray:
+        """Per channel and tone slot, the rms (m) of the error white noise of ``current_rms`` (A
+        per sample, each segment's own, as an ADC's noise and step leave it) puts in the tip
+        estimate: ``sqrt(g sum_j |H_j|^2) current_rms``, with ``g`` the lock-in's noise gain, the
+        mean square of a window's phasor per unit of noise (``4 / N`` over ``N`` samples; for a
+        channel read by least squares the diagonal of ``(A^T A)^-1`` over its tones' cos and sin
+        columns), and ``H_j`` the segments' terms of the tip row, the largest over the candidate
+        loads. Drive and currents pass the same low-pass, divided out at the tone, so it leaves
+        the noise there as it was. 0 for an unused slot. A tip of amplitude ``y`` then reads
+        about ``y (1 + (floor / y)^2 / 4)`` on average (the mean of a Rician magnitude): the
+        magnitude of a noisy phasor is biased high."""
+        n_ch, n_t = self.freqs.shape
+        out = np.zeros((n_ch, n_t))
+        h2 = np.max(np.sum(self.Hc[:, :, :, 0, 1:, :] ** 2, axis=(3, 4)), axis=2)  # (n_ch, n_t)
+        for c in range(n_ch):
+            used = np.flatnonzero(self.freqs[c] > 0.0)
+            if not used.size:
+                continue
+            n = int(self.windows[c])
+            if self.lstsq[c]:
+                t = 2.0 * np.pi * np.arange(n)[:, None] * self.freqs[c, used][None, :] / self.fs
+                a = np.empty((n, 2 * used.size))
+                a[:, 0::2], a[:, 1::2] = np.cos(t), np.sin(t)
+                d = np.diag(np.linalg.inv(a.T @ a))
+                g = d[0::2] + d[1::2]
+            else:
+                g = np.full(used.size, 4.0 / n)
+            out[c, used] = np.sqrt(g * h2[c, used]) * float(current_rms)
+        return out
+
 
 class ObserverRows:
     """Channels ``c0 .. c1 - 1`` of an :class:`Observer`: what a per-channel consumer (a
