@@ -49,6 +49,7 @@ class PerChannelRig(Rig):
                                       -(-(obs.window + int(obs.prefilter_memory.max())) // self.block), self.block,
                                       ring, rise,
                                       (beat * self.block / self.fs, tau * self.fs / self.block), np.maximum(top, tip))
+            self._noise_floor(g, obs, c_, slot, bank, chan, f, target)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)

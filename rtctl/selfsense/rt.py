@@ -639,3 +639,7 @@ class ObserverRows:
         self.u_out = observer.u_out[rows]
         self.u_acc = observer.lock_u.acc
         self.window = int(self.windows.max())
+
+    def noise_floor(self, current_rms: float) -> np.ndarray:
+        """:meth:`Observer.noise_floor` of these rows."""
+        return self.observer.noise_floor(current_rms)[self.first:self.first + self.n_channels]
