@@ -127,6 +127,24 @@ def test_closed_loop_needs_tones():
         build(scene.load("line-bimorph-5", ["control.mode=closed", "stimulus.kind=shape"]))
 
 
+@pytest.mark.parametrize("second", ["{channel = 0, freq = 250, voltage = 1, target_um = 2}",
+                                    "{channel = 0, freq = 265, voltage = 1, target_um = 2}"])
+def test_two_tones_at_one_frequency_of_a_channel_are_refused_under_control(second):
+    """Two tones of one channel at 250 Hz, or a 250 / 30 Hz beat pair (235 + 265 Hz) and a 265 Hz
+    tone: the observer reads one amplitude per frequency, so their two controllers would each read
+    the sum of both (the first held its drive at the floor, 34 % low): a clear error naming the
+    channel and the frequency. Open loop plays them as the sum they are."""
+    from rtctl.errors import SceneError
+
+    first = ("{channel = 0, freq = 250, voltage = 1, target_um = 1}" if "250" in second
+             else "{channel = 0, freq = 250, beat = 30, voltage = 1, target_um = 1}")
+    tones = f"stimulus.tones=[{first}, {second}]"
+    f = "250" if "250" in second else "265"
+    with pytest.raises(SceneError, match=f"channel lateral.0 plays {f} Hz in more than one tone"):
+        build(scene.load("line-bimorph-5-closed", [tones, "events=[]"]))
+    build(scene.load("line-bimorph-5", [tones]))
+
+
 def test_a_tone_target_in_um_overrides_the_receptor_margin():
     rig = build(scene.load("line-bimorph-5", ["control.mode=closed", "stimulus.tones.4.target_um=0.3"]))
     assert rig.targets_um[4] == pytest.approx(0.3)

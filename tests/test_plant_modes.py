@@ -184,7 +184,8 @@ def test_the_scene_check_reads_the_scenes_own_tones_too():
 
     quiet = scene.load("line-bimorph-5-closed")
     assert not [w for w in check(quiet) if "beam.modes" in w]
-    sc = scene.load("line-bimorph-5-closed", ["stimulus.tones=[{channel = 0, freq = 1200, voltage = 1, target_um = 2}]"])
+    sc = scene.load("line-bimorph-5-closed",
+                    ["stimulus.tones=[{channel = 0, freq = 1200, voltage = 1, target_um = 2}]"])
     warned = [w for w in check(sc) if "beam.modes = 4" in w]
     err = observer_errors(Models(sc), sc.actuator[0], 4, (1200.0,))[0]
     assert 0.01 < abs(err) < 0.02

@@ -202,6 +202,14 @@ class Rig:
             if g.type == "bimorph":
                 c1 = ch0 + n
                 per = [[f for tn in self.tones if tn.channel == c for f in tn.freqs] for c in range(ch0, c1)]
+                for c, p in zip(range(ch0, c1), per):
+                    twice = sorted({f for f in p if p.count(f) > 1})
+                    if self.closed and twice:
+                        raise SceneError(
+                            f"{scene.source}: control.mode = closed: channel {self.channel_names[c]} plays "
+                            f"{' and '.join(f'{f:g}' for f in twice)} Hz in more than one tone (or beat pair), and "
+                            "its observer reads one amplitude at a frequency, so their controllers would each read "
+                            "their sum: make them one tone with the sum of their targets")
                 width = max(1, max(len(p) for p in per))
                 freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
                 window, lstsq, hop = (short_windows(freqs, self.fs, self.block) if self.closed
