@@ -109,7 +109,7 @@ class Plant:
         self.faults = None
         plant_drive = self.drive
         if fault_mod.active(scene):
-            ctx = fault_mod.context(scene, fault_mod.AUDIO, n_sensed=row0)
+            ctx = fault_mod.context(scene, fault_mod.AUDIO, n_sensed=row0, names=sim_rows)
             self.faults = fault_mod.sim_injector(scene, fault_mod.plan(scene, ctx), ctx)
             plant_drive = np.zeros_like(self.drive)
         self.rec = None  # the --truth ring (record_ring)

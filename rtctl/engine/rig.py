@@ -75,6 +75,9 @@ class Rig:
         self.truth = None
         self.sensed = np.zeros((0, self.block))
         self.sensed_names: list[str] = []  # row names of ``sensed``, for trace readers
+        # each group's rows of ``sensed``: what its device writes there (on sim a coil's current
+        # too, which hardware does not sense), so an observer reads its own group's rows
+        self.sensed_rows: dict[str, slice] = {}
         self.probes = []  # (trace signal name, unit, object with .probe, row)
         self.truth_names = ()
         self.estimated = np.full((self.n_channels, self.block), np.nan)  # observer tip wave, m
@@ -144,6 +147,7 @@ class Rig:
             sim = build_group(hardware, g, gi, self.fs, self.block)
             rows = n * sim.n_sensed
             groups.append((sim, slice(ch0, ch0 + n), slice(row0, row0 + rows)))
+            self.sensed_rows[g.name] = slice(row0, row0 + rows)
             self.sensed_names += [f"{g.name}.{i}.{lab}" for i in range(n) for lab in sim.sensed_labels]
             self.probes += [(f"{g.name}.{pn}", unit, sim, r) for r, (pn, unit) in enumerate(sim.probe_names)]
             ch0, row0 = ch0 + n, row0 + rows
@@ -155,7 +159,7 @@ class Rig:
         if faults.active(scene):
             from ..io.sim import finger_states
 
-            ctx = faults.context(scene, n_sensed=row0)
+            ctx = faults.context(scene, n_sensed=row0, names=self.sensed_names)
             injector = faults.sim_injector(scene, faults.plan(scene, ctx), ctx)
             fingers = [t for (sim, _, _), g in zip(groups, scene.actuator)
                        if (t := finger_states(sim, hardware, g)) is not None]
@@ -174,6 +178,10 @@ class Rig:
 
         rows, owner = sensed_layout(scene)
         self.sensed_names = rows
+        row0 = 0
+        for g in scene.actuator:
+            self.sensed_rows[g.name] = slice(row0, row0 + n_channels(g) * n_segments(g))
+            row0 += n_channels(g) * n_segments(g)
         self.sensed = np.zeros((len(rows), self.block))
         types = [scene.group(g).type for g in self.channel_groups]
         self.layout = Layout(self.fs, self.block, tuple(self.channel_names), tuple(self.channel_groups),
@@ -196,7 +204,7 @@ class Rig:
                              f"stimulus.kind = 'tones' (the observer is designed on the tone frequencies; "
                              f"rendered stimuli change them), got {scene.stimulus.kind!r}")
         self.latency = scene.io.latency_blocks or int(self.device.latency_blocks)
-        ch0 = row0 = 0
+        ch0 = 0
         for g in scene.actuator:
             n, n_seg = n_channels(g), n_segments(g)
             if g.type == "bimorph":
@@ -218,11 +226,15 @@ class Rig:
                                            window=window, hop=hop, lstsq=lstsq,
                                            prefilter=(prefilter_cutoffs(freqs, self.fs, self.models.lowest_mode(g))
                                                       if self.closed else None))
-                st = ObserverStage(obs, self.latency, self.out[ch0:c1], self.sensed[row0:row0 + n * n_seg],
+                rows = self.sensed_rows[g.name]
+                if rows.stop - rows.start != n * n_seg:
+                    raise SceneError(f"{scene.source}: actuator.{g.name}: the device senses {rows.stop - rows.start} "
+                                     f"rows for it, where its observer reads {n * n_seg} (segment currents)")
+                st = ObserverStage(obs, self.latency, self.out[ch0:c1], self.sensed[rows],
                                    self.estimated_amp[ch0:c1])
                 self.observer_stages.append((g.name, st, g, ch0))
                 self.observers.append((g.name, st, g, ch0))
-            ch0, row0 = ch0 + n, row0 + n * n_seg
+            ch0 += n
 
     def _build_control(self, scene):
         """Amplitude control of every sine tone with a target, one controller per observed group:

@@ -130,6 +130,9 @@ class Context:
     fingers: bool = False
     xrun_limit: int = 0
     xrun_window_blocks: int = 1
+    #: the device's sensed row names (``group.channel.label``), where it senses more than the
+    #: bimorph segments hardware does (a simulated coil's current): () for the hardware layout
+    sensed_names: tuple = ()
 
     def can(self, kind: str) -> bool:
         if self.where not in KINDS[kind].where:
@@ -141,13 +144,14 @@ class Context:
         return True
 
 
-def context(scene, where: str = SIM, n_sensed: int | None = None) -> Context:
-    """The :class:`Context` of ``scene`` run on ``where`` (``n_sensed``: the device's sensed rows
-    where they are more than the bimorph segments a scene's hardware senses)."""
+def context(scene, where: str = SIM, n_sensed: int | None = None, names=None) -> Context:
+    """The :class:`Context` of ``scene`` run on ``where`` (``n_sensed``, ``names``: the device's
+    sensed rows, and their names, where they are more than the bimorph segments a scene's
+    hardware senses: a simulated coil's current comes before a later group's segments)."""
     from ..events import block_of
     from ..models import n_channels, sensed_layout
 
-    rows, owner = sensed_layout(scene)
+    rows = list(names) if names is not None else sensed_layout(scene)[0]
     fs, blk = float(scene.timing.fs), int(scene.timing.block)
     observed = ()
     if scene.control.observe or scene.control.mode == "closed":
@@ -157,7 +161,8 @@ def context(scene, where: str = SIM, n_sensed: int | None = None) -> Context:
     return Context(where, max(1, math.ceil(scene.timing.duration * fs / blk)),
                    len(rows) if n_sensed is None else int(n_sensed),
                    sum(n_channels(g) for g in scene.actuator), observed, fingers and bool(scene.finger.contact),
-                   int(scene.io.xrun_limit), max(1, block_of(scene.io.xrun_window, fs, blk)))
+                   int(scene.io.xrun_limit), max(1, block_of(scene.io.xrun_window, fs, blk)),
+                   tuple(names) if names is not None else ())
 
 
 def burst_limit(ctx: Context) -> float:
@@ -514,14 +519,15 @@ def active(scene) -> bool:
 
 def sim_injector(scene, faults, ctx: Context) -> Injector:
     """The :class:`Injector` of ``scene``'s simulated device with the plan ``faults``; a sensed row
-    of no bimorph (a PVDF cell's current) has a full scale of 1 A."""
-    from ..models import n_channels, n_segments
+    of no bimorph (a PVDF cell's or a coil's current) has a full scale of 1 A."""
+    from ..models import n_channels, sensed_layout
 
-    vmax, full = [], []
+    vmax = []
     for g in scene.actuator:
-        n = n_channels(g)
-        vmax += [float(g.max_voltage)] * n
-        if g.type == "bimorph":
-            full += [float(g.sense.full_scale) / float(g.sense.shunt)] * (n * n_segments(g))
+        vmax += [float(g.max_voltage)] * n_channels(g)
+    full = []
+    for name in ctx.sensed_names or sensed_layout(scene)[0]:
+        g = scene.group(name.split(".")[0])
+        full.append(float(g.sense.full_scale) / float(g.sense.shunt) if g.type == "bimorph" else 1.0)
     full = (full + [1.0] * ctx.n_sensed)[:ctx.n_sensed]
     return Injector(ctx, int(scene.timing.block), vmax, full, faults)
