@@ -130,19 +130,12 @@ def _tone_freqs(scene, g) -> tuple:
     """The frequencies (Hz) an observer of bimorph group ``g`` reads: the skin's band of the
     check (``FREQS_HZ``) and every sine of the scene's tones on ``g``'s channels (a 1.2 kHz tone
     on a beam cut to 4 modes read 2 % off, outside that band)."""
-    from .models import n_channels
     from .selfsense.truncation import FREQS_HZ
 
-    c0 = 0
-    for a in scene.actuator:
-        if a is g:
-            break
-        c0 += n_channels(a)
-    c1 = c0 + n_channels(g)
     mine = []
     if scene.stimulus.kind == "tones":
         for t in scene.stimulus.tones:
-            if c0 <= t.channel < c1:
+            if t.actuator == g.name:  # (a tone's channel counts within its actuator)
                 mine += [t.freq - t.beat / 2, t.freq + t.beat / 2] if t.beat else [t.freq]
     return tuple(sorted(set(FREQS_HZ) | {float(f) for f in mine if f > 0}))
 

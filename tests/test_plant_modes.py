@@ -190,3 +190,17 @@ def test_the_scene_check_reads_the_scenes_own_tones_too():
     err = observer_errors(Models(sc), sc.actuator[0], 4, (1200.0,))[0]
     assert 0.01 < abs(err) < 0.02
     assert len(warned) == 1 and f"about {100 * abs(err):.2g} % off at 1200 Hz" in warned[0], warned
+
+
+def test_the_scene_check_reads_the_tones_of_its_own_group():
+    """bimodal-4x4 observed, a lateral tone at 1.2 kHz (channel 5 of the lateral group, which
+    follows the 16 EM pins): the check of the lateral beam cut to 4 modes names 1200 Hz, where
+    the observer reads it most off; a 1.2 kHz tone on the EM group is not the beam's."""
+    from rtctl.validity import check
+
+    tone = "{actuator = \"%s\", channel = 5, freq = 1200.0, voltage = 1.0}"
+    lateral = scene.load("bimodal-4x4", ["control.observe=true", f"stimulus.tones=[{tone % 'lateral'}]"])
+    normal = scene.load("bimodal-4x4", ["control.observe=true", f"stimulus.tones=[{tone % 'normal'}]"])
+    said = [w for w in check(lateral) if "beam.modes = 4" in w]
+    assert len(said) == 1 and "off at 1200 Hz" in said[0], said
+    assert not [w for w in check(normal) if "off at 1200 Hz" in w]
