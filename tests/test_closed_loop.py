@@ -145,6 +145,25 @@ def test_two_tones_at_one_frequency_of_a_channel_are_refused_under_control(secon
     build(scene.load("line-bimorph-5", [tones]))
 
 
+def test_closed_loop_refuses_a_scene_with_nothing_to_hold_and_names_what_plays_open_loop():
+    """Solenoid pins (pulse tones) and SMA taxels: nothing self-sensing reads, so a closed loop
+    would have run open loop and said nothing; refused, naming the pins and their actuator.
+    bimodal-4x4: its lateral bimorphs are held, its EM pin's 10 Hz tone plays open loop, and a
+    warning says so. The bundled closed scene holds every tone: no such warning."""
+    from rtctl.errors import SceneError
+
+    with pytest.raises(SceneError, match=r"no tone to hold at a target: .* pins\.0, pins\.4, pins\.8 on "
+                                         r"actuator 'pins' \(solenoid, which self-sensing does not read\)"):
+        build(scene.load("solenoid-3x3", ["control.mode=closed"]))
+    with pytest.raises(SceneError, match="no tone to hold at a target"):
+        build(scene.load("sma-8x8", ["control.mode=closed"]))
+    rig = build(scene.load("bimodal-4x4", ["control.mode=closed"]))
+    assert sorted(ctl.n for _, _, ctl in rig.controllers) == [2]
+    assert rig.warnings == ["control.mode = closed: these tones play open loop: normal.5 on actuator 'normal' "
+                            "(em, which self-sensing does not read)"]
+    assert not [w for w in build(scene.load("line-bimorph-5-closed")).warnings if "open loop" in w]
+
+
 def test_a_tone_target_in_um_overrides_the_receptor_margin():
     rig = build(scene.load("line-bimorph-5", ["control.mode=closed", "stimulus.tones.4.target_um=0.3"]))
     assert rig.targets_um[4] == pytest.approx(0.3)

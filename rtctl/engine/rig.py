@@ -112,6 +112,7 @@ class Rig:
                 ch = self.channel_names[self.bank.chan[loose[0]]]
                 raise SceneError(f"{scene.source}: stimulus.play: channel {ch} plays a tip target but is not "
                                  "under amplitude control (bimorph groups with self-sensing only)")
+            self._open_tones(scene)
         # per event (its index in the scene's events): the tones whose target it sets, and that target in m
         self.events, self._events_at, self.event_targets = [], {}, {}
         if scene.get("events"):
@@ -282,6 +283,26 @@ class Rig:
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
+
+    def _open_tones(self, scene) -> None:
+        """Closed loop holds the tips self-sensing reads (bimorph groups), at a target: a scene
+        with no such tone is refused (it would run open loop, saying nothing), and the tones it
+        leaves open loop are named in a warning."""
+        open_ = {}
+        for tone, bank in zip(self.tones, self.stimulus.bank_index):
+            if not any(int(b) in self.controlled for b in bank):  # (a square or pulse tone has no sines)
+                g = scene.group(self.channel_groups[tone.channel])
+                why = (f"{g.type}, which self-sensing does not read" if g.type != "bimorph"
+                       else "no target: give target_um" if not math.isfinite(tone.target_m)
+                       else "a square or pulse tone, which it does not hold")
+                open_.setdefault(f"actuator {g.name!r} ({why})", []).append(self.channel_names[tone.channel])
+        if not open_:
+            return
+        where = "; ".join(f"{', '.join(chs)} on {what}" for what, chs in open_.items())
+        if not self.controlled:
+            raise SceneError(f"{scene.source}: control.mode = closed: no tone to hold at a target: closed loop "
+                             f"holds the bimorph tips self-sensing reads, and this scene plays {where}")
+        self.warnings.append(f"control.mode = closed: these tones play open loop: {where}")
 
     def _noise_floor(self, g, obs, c_, slot, bank, chan, f, target) -> None:
         """Each controlled tone's estimate noise from the group's current sense (its ADC's noise
