@@ -56,8 +56,9 @@ command, so there is nothing to wind up) and does not grow while the limiter hol
 ``CONTROL_FROZEN``: the drive is never raised on a bad estimate. Recovery after a saturation or an
 event is one correction step once the target is reachable. The floor: the command never falls
 below the target over ``FLOOR_MARGIN`` (4) times the most tip per volt any load the model knows
-allows (``gain_top``); a tone held there raises ``CONTROL_FLOOR``: its estimate is not following
-the tip (a tip under the observer's noise floor reads as the noise, which no drop of drive moves).
+allows (``gain_top``); a tone held there raises ``CONTROL_FLOOR``. For a moment that is a ring
+after an event read above the steady tip; for long, an estimate that does not follow the tip (a
+tip under the observer's noise floor reads as the noise, which no drop of drive moves).
 """
 
 from __future__ import annotations
@@ -176,9 +177,10 @@ class AmplitudeController:
         where the ring ends (``SLOW``). None: no such mode.
     gain_top : array_like, shape (n,), optional
         Per tone, the most tip amplitude per volt any load the model knows allows, m/V (at least
-        ``gain_model``; inf: none). The drive never falls below the target over ``FLOOR_MARGIN`` times it: an
-        estimate that still reads the tip above the target there is not following the tip, and
-        the tone raises ``CONTROL_FLOOR`` while it holds the floor. None: no floor.
+        ``gain_model``; inf: none). The drive never falls below the target over ``FLOOR_MARGIN``
+        times it, and the tone raises ``CONTROL_FLOOR`` while it holds that floor (an estimate
+        that reads the tip above the target there is not following the tip, or reads a ring).
+        None: no floor.
 
     Attributes
     ----------
