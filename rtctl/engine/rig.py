@@ -211,7 +211,10 @@ class Rig:
             if g.type == "bimorph":
                 c1 = ch0 + n
                 per = [[f for tn in self.tones if tn.channel == c for f in tn.freqs] for c in range(ch0, c1)]
-                for c, p in zip(range(ch0, c1), per):
+                # the scene's tones play together (a played signal's voices, after them, take turns)
+                scene_tones = self.tones[:len(self.tones) - len(self.stimulus.voices)]
+                held = [[f for tn in scene_tones if tn.channel == c for f in tn.freqs] for c in range(ch0, c1)]
+                for c, p in zip(range(ch0, c1), held):
                     twice = sorted({f for f in p if p.count(f) > 1})
                     if self.closed and twice:
                         raise SceneError(
