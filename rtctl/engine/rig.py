@@ -311,10 +311,11 @@ class Rig:
         """Each controlled tone's estimate noise from the group's current sense (its ADC's noise
         and step, over the shunt), and a warning for a target within NOISE_MARGIN of it."""
         from ..control.amplitude import NOISE_MARGIN
+        from ..plant.frontend import CurrentSense
 
-        sense = g.sense
-        lsb = 2.0 * sense.full_scale / 2.0 ** sense.bits
-        floor = obs.noise_floor(math.sqrt(sense.noise ** 2 + lsb ** 2 / 12.0) / sense.shunt)
+        s = g.sense
+        sense = CurrentSense(s.shunt, s.aa_cutoff, s.aa_order, s.bits, s.full_scale, s.noise)
+        floor = obs.noise_floor(math.hypot(sense.noise_rms_v, sense.lsb_v / math.sqrt(12.0)) / sense.shunt_ohm)
         for c, k, b, ch, fk, r in zip(c_, slot, bank, chan, f, target):
             noise = float(floor[c, k])
             self.control_noise[int(b)] = noise
