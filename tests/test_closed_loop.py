@@ -145,6 +145,33 @@ def test_two_tones_at_one_frequency_of_a_channel_are_refused_under_control(secon
     build(scene.load("line-bimorph-5", [tones]))
 
 
+def test_two_tones_at_one_frequency_are_observed_as_their_sum(tmp_path):
+    """Observe-only, two 1 V tones of lateral.0 at 250 Hz are one 2 V sine there: the observer
+    reads it once (it had read the sum once per tone, +100 %) and its estimate agrees with the
+    simulated tip, and with lateral.1 playing one 2 V tone."""
+    tones = ("stimulus.tones=[{channel = 0, freq = 250, voltage = 1}, {channel = 0, freq = 250, voltage = 1}, "
+             "{channel = 1, freq = 250, voltage = 2}]")
+    s = scene.load("line-bimorph-5", [tones, "timing.duration=0.3", "control.observe=true"])
+    two, one = run(s, out_dir=tmp_path, plot=False).summary["channels"][:2]
+    assert two["true_um"] == pytest.approx(one["true_um"], rel=1e-9)
+    assert two["estimated_um"] == pytest.approx(two["true_um"], rel=0.01)  # the scene's 4 modes: 0.4-0.6 %
+    assert two["estimated_um"] == pytest.approx(one["estimated_um"], rel=1e-3)  # (each channel its own noise)
+
+
+def test_a_played_voice_at_a_held_tone_frequency_is_refused():
+    """A closed scene's 120 Hz tone on lateral.3 and a played 120 Hz sine on the same channel:
+    the voice's controller and the tone's would each read their sum. Refused, naming both; the
+    same voice on another channel is not."""
+    from rtctl.errors import SceneError
+
+    play = ['stimulus.signals=[{name = "c", type = "sine", freq = 120.0, amp = 12.0}]',
+            "stimulus.play=[{signal = 'c', channel = 3, start = 0.1}]", "events=[]"]
+    with pytest.raises(SceneError, match="channel lateral.3 plays 120 Hz in a tone and in a played voice"):
+        build(scene.load("line-bimorph-5-closed", play))
+    build(scene.load("line-bimorph-5-closed", [*play[:1], "stimulus.play=[{signal = 'c', channel = 2, start = 0.1}]",
+                                               "events=[]"]))
+
+
 def test_closed_loop_refuses_a_scene_with_nothing_to_hold_and_names_what_plays_open_loop():
     """Solenoid pins (pulse tones) and SMA taxels: nothing self-sensing reads, so a closed loop
     would have run open loop and said nothing; refused, naming the pins and their actuator.
