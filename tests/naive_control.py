@@ -10,6 +10,7 @@ from rtctl.control._kernels import (
     AGREE,
     ALL,
     AMAX,
+    ANCHOR,
     BANK,
     BIG_STEP,
     CHANGED,
@@ -25,10 +26,12 @@ from rtctl.control._kernels import (
     GAIN,
     GHAT,
     GLIVE,
+    GMAX,
     GTOP,
     HOLD,
     HOLD0,
     HOLDMAX,
+    JNOISE,
     LASTDIR,
     LIMSEEN,
     LIVE_DRIVE,
@@ -37,6 +40,7 @@ from rtctl.control._kernels import (
     MAX_STEP,
     NALL,
     NOISE_Z,
+    NREL,
     NSTR,
     OBS_CH,
     OBS_SLOT,
@@ -48,10 +52,15 @@ from rtctl.control._kernels import (
     P2I,
     P2R,
     PATIENCE,
+    PREVY,
     REF,
     REFV,
+    RELEASE,
     REVERSAL,
     REVS,
+    RIPPLE,
+    RIPPLE_DECAY,
+    RIPPLE_K,
     RISE,
     RISEK,
     RREF,
@@ -87,7 +96,22 @@ def _pace_anew(col):
 
 def _watch_anew(col):
     col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
-    col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = 0.0
+    col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = col[ANCHOR] = col[PREVY] = 0.0
+
+
+def _let_go(col, y, r, a):
+    """The release rule: a rise of the estimate above the latest on-target one."""
+    if not (0 < y < math.inf and r > 0) or col[JNOISE] < 0:
+        return False
+    rip = col[RIPPLE]
+    if col[PREVY] > 0:
+        col[RIPPLE] = max(abs(y - col[PREVY]), RIPPLE_DECAY * rip)
+    col[PREVY] = y
+    up = (col[ANCHOR] > 0 and y - col[ANCHOR] > RELEASE * r + col[JNOISE] + RIPPLE_K * rip
+          and a * col[GMAX] > (1 + RELEASE) * r)
+    if not up and abs(y / r - 1) <= AGREE:
+        col[ANCHOR] = y
+    return up
 
 
 def _others_wait(state, index, stepped):
@@ -156,13 +180,20 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             col[WAIT] -= 1
             if not rising:
                 continue
+        elif _let_go(col, math.hypot(*est[c, j, 0]), r, a):
+            a, col[EST], col[GHAT] = r / col[GMAX], math.hypot(*est[c, j, 0]), col[GMAX]
+            col[GLIVE] = col[RSUM] = col[RRUN] = col[RREF] = 0.0
+            col[NREL] += 1
+            _watch_anew(col)
+            _pace_anew(col)
+            col[WAIT] = col[WARM]
         else:
             y = math.hypot(*est[c, j, 0])
             col[EST] = y
             if not (0 < y < math.inf and r > 0):
                 col[FROZEN] = 1.0
                 col[REF] = col[SUM] = col[SQ] = col[RUN] = col[ALL] = col[NALL] = 0.0
-                col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = 0.0
+                col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = col[ANCHOR] = col[PREVY] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             col[FROZEN] = 0.0

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from rtctl.control import AmplitudeController, amplitude_control
+from rtctl.control.amplitude import RELEASE_Z
 from rtctl.engine.rig import Rig
 from rtctl.engine.stage import Stage
 
@@ -45,11 +46,14 @@ class PerChannelRig(Rig):
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
             rise = int(round(scene.control.rise_s * self.fs / self.block))
             beat, tau = self.models.nearest_modes(g, f)
+            self._noise_floor(g, obs, c_, slot, bank, chan, f, target)
+            release = [RELEASE_Z * self.control_noise[int(b)] if obs.prefilter[c] > 0 else -1.0
+                       for c, b in zip(c_, bank)]
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
                                       -(-(obs.window + int(obs.prefilter_memory.max())) // self.block), self.block,
                                       ring, rise,
-                                      (beat * self.block / self.fs, tau * self.fs / self.block), np.maximum(top, tip))
-            self._noise_floor(g, obs, c_, slot, bank, chan, f, target)
+                                      (beat * self.block / self.fs, tau * self.fs / self.block), np.maximum(top, tip),
+                                      release)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)

@@ -302,3 +302,24 @@ def test_a_target_near_the_noise_floor_is_warned_of_before_the_run(tmp_path):
     for name in ("lateral.0", "lateral.1", "lateral.2", "lateral.3", "lateral.4"):
         base = 1e6 * plain.control_noise[int(np.flatnonzero(plain.bank.chan == int(name[-1]))[0])]
         assert rows[name]["noise_um"] == pytest.approx(20.0 * base, rel=0.01)
+
+
+def test_the_release_rule_is_on_for_the_low_passed_tones_with_three_noise_floors():
+    """The bundled closed scene: the 2, 10 and 40 Hz tones (the channels the observer low-passes,
+    far below the loaded modes, where the lifted beam is the most responsive load) watch for a
+    finger that lets go, with 3 times their estimate's noise floor as allowance; 120 and 250 Hz
+    do not. The drop it makes is the target over the lifted beam's tip per volt, which the
+    model's beam gives here directly."""
+    from rtctl.control._kernels import GMAX, JNOISE
+
+    s = scene.load("line-bimorph-5-closed")
+    rig = build(s)
+    (_, st, ctl), = rig.controllers
+    noise = np.array([rig.control_noise[int(b)] for bank in rig.stimulus.bank_index for b in bank])
+    on = ctl.state[JNOISE] >= 0
+    assert on.tolist() == [True, True, True, False, False]
+    np.testing.assert_allclose(ctl.state[JNOISE, on], 3.0 * noise[on], rtol=1e-12)
+    f = np.array([2.0, 10.0, 40.0])
+    lifted = (np.abs(st.observer.beam.response(f, None)["tip"])
+              / np.abs(1.0 + 1j * f / s.group("lateral").amplifier.bandwidth))
+    np.testing.assert_allclose(ctl.state[GMAX, on], lifted, rtol=1e-9)

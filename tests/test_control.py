@@ -16,6 +16,7 @@ from rtctl.control._kernels import (
     HOLDMAX,
     LOW,
     MAX_STEP,
+    NREL,
     NSTR,
     ON,
     P1V,
@@ -41,13 +42,14 @@ class Loop:
     """Controllers of ``n`` tones on a plant that is a gain per tone (tip m per V), seen by an
     observer as the mean over ``window`` blocks of the tip ``latency`` blocks earlier."""
 
-    def __init__(self, plant_gain, model_gain, targets, amax=150.0, latency=1, window=6, ring=0, beside=None):
+    def __init__(self, plant_gain, model_gain, targets, amax=150.0, latency=1, window=6, ring=0, beside=None,
+                 gain_top=None, release=None):
         n = len(targets)
         self.n, self.latency, self.window = n, latency, window
         self.plant = np.asarray(plant_gain, dtype=float)
         self.ctl = AmplitudeController(np.arange(n), np.zeros(n, int), np.arange(n), np.arange(n),
                                        model_gain, np.full(n, amax), targets, latency, window, BLOCK, ring,
-                                       beside=beside)
+                                       beside=beside, gain_top=gain_top, release=release)
         self.est = np.zeros((n, 1, 9, 2))
         self.pending = np.zeros((N_PEND, n))
         self.lim = np.zeros((3, n), dtype=np.int64)
@@ -283,6 +285,48 @@ def test_the_floor_matches_its_naive_twin(seed):
     assert not np.any(ctl.state[LOW, ~deaf])  # a plant that follows its drive never reaches it
     np.testing.assert_allclose(ctl.state[CMD, deaf], ctl.target[TARGET, deaf] / (FLOOR_MARGIN * top[deaf]),
                                rtol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_release_rule_matches_its_naive_twin(seed):
+    """Tones on plants that turn up to 3x more responsive at times (a finger letting go), or
+    half as responsive, with noisy estimates, targets that step, some tones without the rule:
+    kernel and twin agree block by block, releases happen, and never on a tone without the rule."""
+    rng = np.random.default_rng(200 + seed)
+    n = 6
+    model = rng.uniform(1e-8, 1e-6, n)
+    top = model * rng.uniform(1.5, 3.0, n)
+    targets = rng.uniform(1e-7, 5e-6, n)
+    release = np.where(np.arange(n) % 3 == 0, -1.0, rng.uniform(0.0, 0.01, n) * targets)
+    ctl = AmplitudeController(np.arange(n), np.zeros(n, int), np.arange(n), np.arange(n), model,
+                              np.full(n, 150.0), targets, 1, (3, 12, 30)[seed], BLOCK, ring=(0, 30, 60)[seed],
+                              rise=(0, 1, 5)[seed], gain_top=top, release=release)
+    ctl.target[ENABLE] = 1.0
+    twin = [a.copy() for a in (ctl.index, ctl.target, ctl.state)]
+    pend_k, pend_n = np.zeros((N_PEND, n)), np.zeros((N_PEND, n))
+    lim = np.zeros((3, n), dtype=np.int64)
+    plant, scale = model.copy(), 0.0
+    for k in range(2000):
+        if k % 400 == 399:  # let go, or press: a new plant for every tone
+            plant = np.where(rng.uniform(size=n) < 0.6, top * rng.uniform(0.7, 1.0, n), 0.5 * model)
+        if k % 700 == 699:
+            j = rng.integers(n)
+            ctl.target[TARGET, j] = twin[1][TARGET, j] = rng.uniform(1e-7, 5e-6)
+        est = np.zeros((n, 1, 9, 2))
+        est[:, 0, 0, 0] = plant * pend_k[P_AMP] * rng.uniform(0.998, 1.002, n)
+        est[k % 97 == 5, 0, 0, 0] = np.nan
+        drive_est = np.zeros((n, 1, 2))
+        drive_est[:, 0, 0] = pend_k[P_AMP]
+        sk = amplitude_control(est, drive_est, ctl.index, ctl.target, ctl.state, pend_k, lim, float(BLOCK))
+        sn = naive(est, drive_est, twin[0], twin[1], twin[2], pend_n, lim, float(BLOCK))
+        assert sk == sn
+        rows = ~np.isin(np.arange(ctl.state.shape[0]), (REFV, P1V))  # (variances by subtraction: as above)
+        np.testing.assert_allclose(ctl.state[rows], twin[2][rows], rtol=1e-12, atol=0)
+        scale = max(scale, np.max(twin[2][REF]) ** 2)
+        np.testing.assert_allclose(ctl.state[[REFV, P1V]], twin[2][[REFV, P1V]], rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(pend_k, pend_n, rtol=1e-12, atol=0)
+    assert np.all(ctl.state[NREL, release < 0] == 0)
+    assert np.sum(ctl.state[NREL, release >= 0]) > 0
 
 
 def test_a_ripple_is_averaged_out_not_chased():
@@ -701,3 +745,66 @@ def test_two_tones_of_a_channel_due_in_one_block_both_correct():
             break
     np.testing.assert_allclose(ctl.state[CMD] / before, 2.0, rtol=1e-12)
     np.testing.assert_array_equal(ctl.state[WAIT], ctl.state[WARM])
+
+
+
+@pytest.mark.parametrize("ratio, fires", [(3.0, 1), (1.75, 1), (1.6, 6)])
+def test_a_release_drops_the_drive_to_the_most_responsive_load_at_once(ratio, fires):
+    """A tone held on target under a finger (tip per volt 1e-7) whose plant turns ``ratio``
+    times as responsive (the finger let go), the most any load allows being 3e-7 (``gain_top``).
+    Seen through a 30-block window one block late, the estimate of block ``j`` of the new plant
+    reads ``1 + j (ratio - 1) / 30`` of the target. The rule drops the command to the target over
+    3e-7 on the first estimate more than 2 % of the target (and the noise allowance, 0.1 %) above
+    the latest one within 5 % of the target, and twice the estimate's latest move from one block
+    to the next: at 6.7 and 2.5 % per block that is the first (``fires`` = 1, from a steady
+    estimate); at 2.0 % per block (estimates 1.02, 1.04, then 1.06, outside 5 %, each 2 % above
+    the one before) the sixth, 8 % above the second (more than 2.1 + 2 x 2 %). The tip is then the
+    target times ``ratio / 3``, and it overshot for
+    ``fires + 1`` blocks. Without the rule it stays ``ratio`` times the target for a window."""
+    target, window = 5e-6, 30
+    for rule in (True, False):
+        loop = Loop([1e-7], [1e-7], [target], latency=1, window=window, gain_top=[3e-7],
+                    release=[0.001 * target] if rule else None)
+        loop.run(400)
+        assert loop.ctl.state[CMD, 0] == pytest.approx(target / 1e-7, rel=0.002)  # on target
+        loop.plant[0] = ratio * 1e-7
+        tips = loop.run(120)[400:, 0]
+        over = int(np.count_nonzero(tips > 1.1 * target))
+        if rule:
+            assert loop.ctl.state[NREL, 0] == 1
+            assert over == fires + 1
+            assert np.all(tips[fires + 1:] <= target * (1 + 1e-9))  # never over the target again
+            assert tips[-1] == pytest.approx(target, rel=0.01) or ratio < 3.0  # (below: the loop brings it up)
+        else:
+            assert over > window and loop.ctl.state[NREL, 0] == 0
+
+
+@pytest.mark.parametrize("jump, fires", [(0.045, True), (0.040, False)])
+def test_a_recent_wobble_of_the_estimate_raises_the_rise_a_release_needs(jump, fires):
+    """Held on target, the estimate dips 3 % for one block (a ring), reads the target again for
+    11 blocks, then rises by ``jump``: the wobble's 3 % move, decayed by 0.9 per block over 10
+    blocks to 1.05 %,
+    counts twice against the rise, which must exceed 2 % + 0.1 % (noise) + 2.1 %: 4.2 %."""
+    target = 5e-6
+    loop = Loop([1e-7], [1e-7], [target], latency=1, window=30, gain_top=[3e-7], release=[0.001 * target])
+    loop.run(400)
+    for y in [0.97] + [1.0] * 11 + [1.0 + jump]:
+        loop.est[0, 0, 0] = (y * target, 0.0)
+        amplitude_control(loop.est, loop.drive_est, **loop.ctl.args, pending=loop.pending, lim_counts=loop.lim,
+                          ramp=float(BLOCK))
+    assert loop.ctl.state[NREL, 0] == fires
+
+
+def test_no_release_where_the_tip_falls_or_the_drive_is_already_the_lifted_one():
+    """A finger that presses harder (the plant half as responsive), and a device 10 % more
+    responsive than the most the model allows whose tip then rises by a third: no release (the
+    drive is already under the target over ``gain_top``); the loop corrects on its window as
+    before."""
+    for before, after in ((1e-7, 0.5e-7), (3.3e-7, 4.4e-7)):
+        loop = Loop([before], [1e-7], [5e-6], latency=1, window=30, gain_top=[3e-7], release=[0.0])
+        loop.run(400)
+        assert loop.ctl.state[CMD, 0] == pytest.approx(5e-6 / before, rel=0.002)
+        loop.plant[0] = after
+        tips = loop.run(200)[400:, 0]
+        assert loop.ctl.state[NREL, 0] == 0
+        assert tips[-1] == pytest.approx(5e-6, rel=0.002)

@@ -56,8 +56,14 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  GTOP,    # the most tip per volt a device may have at the tone, m/V (inf: no floor; see LOW)
  LOW,     # 1: the command is held at the floor, target / GTOP (the estimate asked for less)
  LOWN,    # blocks the command has been held at the floor since the controller's reset
- ) = range(49)
-N_STATE = 49
+ GMAX,    # the most tip per volt a device may have at the tone, m/V (GTOP without its margin)
+ JNOISE,  # the release rule's noise allowance on a rise of the estimate, m (< 0: no release rule)
+ ANCHOR,  # the latest fresh estimate of this command within AGREE of the target, m (0: none)
+ NREL,    # releases since the controller's reset
+ PREVY,   # the previous watched block's fresh estimate, m (0: none since the last command)
+ RIPPLE,  # how far fresh estimates moved from block to block of late, m (a decaying peak)
+ ) = range(55)
+N_STATE = 55
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -150,6 +156,22 @@ EXT_GAIN = 4.0
 #: 0.8 within EXT_GAIN). A ring beside a loaded mode turns by its beat (0.3 rad per stretch
 #: above); one exactly on its mode's frequency does not, and is left to the other rules
 TURN = 0.1
+#: a release: a fresh estimate that rises more than this share of the target (and more than its
+#: noise, ``JNOISE``) above the latest on-target estimate of an unchanged command says the finger
+#: let go (lifts off, or presses lighter). Where the rule is on, the drive drops at once to what
+#: puts the target on the most responsive load the model knows (``GMAX``: the lifted beam, at the
+#: low tones the rule is for), which no device the model allows overshoots with, and the loop
+#: watches anew from there. Waiting for a window of the new load (100 ms at 10 Hz) let a lifted
+#: tip swing at up to 3x its target; the window's first blocks already show the rise. Figures:
+#: docs/control.md, "A finger that lets go".
+RELEASE = 0.02
+#: ... and by more than this many times what the estimate moved from one block to the next of
+#: late (``RIPPLE``: the largest move, decaying by ``RIPPLE_DECAY`` per watched block). After a
+#: finger lands on a half-damped beam with a soft finger, the low-passed 80 Hz reading still
+#: wobbles by a few % per block; each wobble read as a release dropped the drive, the loop raised
+#: it again, and the tone was held 27 % low for a second
+RIPPLE_K = 2.0
+RIPPLE_DECAY = 0.9
 
 
 @kernel
@@ -166,6 +188,25 @@ def _watch_anew(state, i):
     state[SUMI, i] = 0.0
     state[NSTR, i] = 0.0
     state[SPREV, i] = 0.0
+    state[ANCHOR, i] = 0.0
+    state[PREVY, i] = 0.0
+
+
+@kernel
+def _released(state, i, y, r, a):
+    """Whether tone ``i``'s fresh estimate ``y`` (m; target ``r``, command ``a``) shows a
+    release (``RELEASE``); keeps ``ANCHOR``."""
+    if not (y > 0.0 and y < math.inf and r > 0.0) or state[JNOISE, i] < 0.0:
+        return False
+    rip = state[RIPPLE, i]
+    if state[PREVY, i] > 0.0:
+        state[RIPPLE, i] = max(abs(y - state[PREVY, i]), RIPPLE_DECAY * rip)
+    state[PREVY, i] = y
+    up = (state[ANCHOR, i] > 0.0 and y - state[ANCHOR, i] > RELEASE * r + state[JNOISE, i] + RIPPLE_K * rip
+          and a * state[GMAX, i] > (1.0 + RELEASE) * r)
+    if not up and abs(y / r - 1.0) <= AGREE:
+        state[ANCHOR, i] = y
+    return up
 
 
 @kernel
@@ -320,6 +361,20 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             state[WAIT, i] -= 1.0
             if not rising:
                 continue
+        elif _released(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]), r, a):
+            # the finger let go: the drive for the most responsive load at once, in one block (a
+            # rise would hold the swing for its length), and a new command's watch
+            a = r / state[GMAX, i]
+            state[EST, i] = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
+            state[GHAT, i] = state[GMAX, i]  # what a start or target step now aims by
+            state[GLIVE, i] = 0.0
+            state[RSUM, i] = 0.0
+            state[RRUN, i] = 0.0
+            state[RREF, i] = 0.0
+            state[NREL, i] += 1.0
+            _watch_anew(state, i)
+            _pace_anew(state, i)
+            state[WAIT, i] = state[WARM, i]
         else:
             # every block from here on the estimate holds nothing but the present command: watch
             # it until it has been steady for HOLD blocks, then correct on the run's mean
@@ -337,6 +392,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 state[SUMI, i] = 0.0
                 state[NSTR, i] = 0.0
                 state[SPREV, i] = 0.0
+                state[ANCHOR, i] = 0.0
+                state[PREVY, i] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             state[FROZEN, i] = 0.0

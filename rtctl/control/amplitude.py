@@ -41,7 +41,12 @@ steps, per controlled tone:
   before, each such correction doubles ``H``, up to half the ring time: the two stretches had
   agreed on the extremes of a beat of the tone with a loaded mode, which a longer stretch
   averages out. An on-target stretch, a start or target step, a correction by more than 30 %,
-  and two stretches more than 20 % apart (an event) set ``H`` back to its design.
+  and two stretches more than 20 % apart (an event) set ``H`` back to its design;
+* a release (``release``: tones far below the loaded modes, where the lifted beam is the most
+  responsive load): a fresh estimate more than 2 % of the target above the latest one within 5 %
+  of it (and beyond its noise and its latest block-to-block move) says the finger let go, and the
+  command drops at once to the target over that load's tip per volt, then waits ``W``: a window
+  of the new load is long there, and the lifted tip swings at up to 3x the target meanwhile.
 
 With ``g = 1`` this is deadbeat for a static plant: one correction removes a model error up to a
 factor of four (a wild estimate cannot move the drive by more), and feedback never crosses the
@@ -72,10 +77,12 @@ from ._kernels import (
     ENABLE,
     FF,
     GAIN,
+    GMAX,
     GTOP,
     HOLD,
     HOLD0,
     HOLDMAX,
+    JNOISE,
     N_INDEX,
     N_STATE,
     N_TARGET,
@@ -107,6 +114,10 @@ FLOOR_MARGIN = 4.0
 #: (a noisy phasor's magnitude is biased high by about ``(floor / y)^2 / 4``, the Rician mean);
 #: a closer one is warned of when the rig is built
 NOISE_MARGIN = 5.0
+#: the release rule's allowance for noise: this many times the estimate's noise floor (the rise
+#: it looks for is between estimates of windows a few blocks apart, whose noise is mostly the
+#: same: their difference's noise is a small part of the floor)
+RELEASE_Z = 3.0
 
 
 def steady_blocks(window: int, ring: int) -> int:
@@ -181,6 +192,11 @@ class AmplitudeController:
         times it, and the tone raises ``CONTROL_FLOOR`` while it holds that floor (an estimate
         that reads the tip above the target there is not following the tip, or reads a ring).
         None: no floor.
+    release : array_like, shape (n,), optional
+        Per tone, the noise allowance (m) of the release rule (``RELEASE``: a fresh estimate that
+        rises above the latest on-target one by more than ``RELEASE`` of the target and this drops
+        the drive to the target over ``gain_top``), or a negative value: no release rule for
+        that tone. Needs ``gain_top``. None: no release rule.
 
     Attributes
     ----------
@@ -192,7 +208,8 @@ class AmplitudeController:
     """
 
     def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
-                 latency: int, window, block: int, ring: int = 0, rise: int = 0, beside=None, gain_top=None):
+                 latency: int, window, block: int, ring: int = 0, rise: int = 0, beside=None, gain_top=None,
+                 release=None):
         n = len(bank_index)
         self.n = n
         self.index = np.zeros((N_INDEX, n), dtype=np.int64)
@@ -214,6 +231,15 @@ class AmplitudeController:
                 raise ValueError("the most tip per volt of any load must be at least the model's, per tone "
                                  "(inf: no floor)")
             self._gtop = FLOOR_MARGIN * top
+        self._gmax = self._gtop / FLOOR_MARGIN
+        self._release = np.full(n, -1.0)
+        if release is not None:
+            rel = np.broadcast_to(np.asarray(release, dtype=float), (n,))
+            if gain_top is None and np.any(rel >= 0):
+                raise ValueError("the release rule drops the drive to the target over gain_top: it needs gain_top")
+            if np.any(np.isnan(rel)):
+                raise ValueError("release: a noise allowance (m) per tone, negative for none, not NaN")
+            self._release = rel.copy()
         self._amax = np.asarray(max_amplitude, dtype=float)
         self.targets0 = np.asarray(targets, dtype=float)
         self.ring = max(0, int(ring))
@@ -251,6 +277,8 @@ class AmplitudeController:
         self.state[...] = 0.0
         self.state[FF] = self._ff
         self.state[GTOP] = self._gtop
+        self.state[GMAX] = self._gmax
+        self.state[JNOISE] = self._release
         self.state[AMAX] = self._amax
         self.state[GAIN] = self.gain
         self.state[WARM] = self.warm

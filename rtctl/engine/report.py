@@ -232,7 +232,7 @@ def _control(rig, rows) -> None:
     from the controllers' final state."""
     if not rig.controllers:
         return  # open loop: rtctl.control is neither needed nor imported
-    from ..control._kernels import BANK, CHANNEL, CMD, EST, LOWN, OBS_CH, SAT
+    from ..control._kernels import BANK, CHANNEL, CMD, EST, LOWN, NREL, OBS_CH, SAT
 
     for _, st, ctl in rig.controllers:
         for j in range(ctl.n):
@@ -259,6 +259,8 @@ def _control(rig, rows) -> None:
             # (rtctl.control.amplitude); any time at all is worth a look
             row["floor_s"] = max(row.get("floor_s", 0.0), float(ctl.state[LOWN, j]) * rig.block / rig.fs)
             row["at_floor"] = row["floor_s"] > 0.0
+            # how often its drive dropped at once for a finger that let go (the release rule)
+            row["releases"] = row.get("releases", 0) + int(ctl.state[NREL, j])
             # the rms its estimate's noise leaves in the amplitude (over its tones' sines)
             n2 = (row.get("noise_um") or 0.0) ** 2 + (1e6 * rig.control_noise.get(int(ctl.index[BANK, j]), 0.0)) ** 2
             row["noise_um"] = math.sqrt(n2)

@@ -259,6 +259,7 @@ class Rig:
         channel would pay the call's fixed cost once per channel, and a composed function of a
         thousand calls takes LLVM longer to build than anyone waits)."""
         from ..control import AmplitudeController
+        from ..control.amplitude import RELEASE_Z
 
         self.controlled = {}  # bank tone index -> (controller, its column)
         per_channel = {}
@@ -285,17 +286,27 @@ class Rig:
             amp = np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / amp
             # and under the most responsive load it allows for: the drive's floor
-            top = np.max([np.abs(obs.beam.response(f, load)["tip"]) for load in self.models.spread_loads(g)],
-                         axis=0) / amp
+            loads = self.models.spread_loads(g)
+            gains = np.array([np.abs(obs.beam.response(f, load)["tip"]) for load in loads]) / amp
+            top = gains.max(axis=0)
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
             # each tone waits for its own channel's window and its low-pass's memory, in whole blocks
             window = -(-(obs.windows + obs.prefilter_memory)[c_] // self.block)
             rise = int(round(scene.control.rise_s * self.fs / self.block))
             beat, tau = self.models.nearest_modes(g, f)  # in turns per block and blocks
             beside = (beat * self.block / self.fs, tau * self.fs / self.block)
-            ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
-                                      ring, rise, beside, np.maximum(top, tip))
             self._noise_floor(g, obs, c_, slot, bank, chan, f, target)
+            # the release rule for the tones far below the loaded beam's modes (those the observer
+            # low-passes), where the most responsive load is the lifted beam: the drop then puts
+            # the target on the lifted tip. Nearer the modes a ring moves the estimate by more
+            # than a release does in its first blocks (on the bundled beam, from 120 Hz up, such
+            # false releases held tones 10-55 % low), and the window is short anyway
+            lifted = np.array([x is None for x in loads])
+            free = gains[lifted].max(axis=0) if lifted.any() else np.zeros_like(top)
+            release = np.where((obs.prefilter[c_] > 0.0) & (free >= top * (1.0 - 1e-9)),
+                               RELEASE_Z * np.array([self.control_noise[int(b)] for b in bank]), -1.0)
+            ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
+                                      ring, rise, beside, np.maximum(top, tip), release)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
