@@ -28,6 +28,7 @@ from rtctl.control._kernels import (
     GLIVE,
     GMAX,
     GTOP,
+    HIGH,
     HOLD,
     HOLD0,
     HOLDMAX,
@@ -42,6 +43,7 @@ from rtctl.control._kernels import (
     NOISE_Z,
     NREL,
     NSTR,
+    NWATCH,
     OBS_CH,
     OBS_SLOT,
     ON,
@@ -56,6 +58,8 @@ from rtctl.control._kernels import (
     REF,
     REFV,
     RELEASE,
+    RELEASE_AFTER,
+    RELEASE_RUN,
     REVERSAL,
     REVS,
     RIPPLE,
@@ -96,7 +100,7 @@ def _pace_anew(col):
 
 def _watch_anew(col):
     col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
-    col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = col[ANCHOR] = col[PREVY] = 0.0
+    col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = col[ANCHOR] = col[PREVY] = col[NWATCH] = col[HIGH] = 0.0
 
 
 def _let_go(col, y, r, a):
@@ -104,14 +108,17 @@ def _let_go(col, y, r, a):
     if not (0 < y < math.inf and r > 0) or col[JNOISE] < 0:
         return False
     rip = col[RIPPLE]
-    if col[PREVY] > 0:
-        col[RIPPLE] = max(abs(y - col[PREVY]), RIPPLE_DECAY * rip)
+    col[NWATCH] += 1
+    high = (col[NWATCH] >= RELEASE_AFTER and col[ANCHOR] > 0
+            and y - col[ANCHOR] > RELEASE * r + col[JNOISE] + RIPPLE_K * rip and a * col[GMAX] > (1 + RELEASE) * r)
+    col[HIGH] = col[HIGH] + 1 if high else 0.0
+    if not high:
+        if col[PREVY] > 0:
+            col[RIPPLE] = max(abs(y - col[PREVY]), RIPPLE_DECAY * rip)
+        if abs(y / r - 1) <= AGREE:
+            col[ANCHOR] = y
     col[PREVY] = y
-    up = (col[ANCHOR] > 0 and y - col[ANCHOR] > RELEASE * r + col[JNOISE] + RIPPLE_K * rip
-          and a * col[GMAX] > (1 + RELEASE) * r)
-    if not up and abs(y / r - 1) <= AGREE:
-        col[ANCHOR] = y
-    return up
+    return col[HIGH] >= RELEASE_RUN
 
 
 def _others_wait(state, index, stepped):
@@ -193,7 +200,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             if not (0 < y < math.inf and r > 0):
                 col[FROZEN] = 1.0
                 col[REF] = col[SUM] = col[SQ] = col[RUN] = col[ALL] = col[NALL] = 0.0
-                col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = col[ANCHOR] = col[PREVY] = 0.0
+                col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = 0.0
+                col[ANCHOR] = col[PREVY] = col[NWATCH] = col[HIGH] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             col[FROZEN] = 0.0

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from rtctl.control import AmplitudeController, amplitude_control
-from rtctl.control.amplitude import RELEASE_Z
+from rtctl.control.amplitude import RELEASE_WINDOW, RELEASE_Z
 from rtctl.engine.rig import Rig
 from rtctl.engine.stage import Stage
 
@@ -41,14 +41,17 @@ class PerChannelRig(Rig):
             c_, slot, bank, chan, f, target, amax = (np.array(x) for x in zip(*cols))
             amp = np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / amp
-            top = np.max([np.abs(obs.beam.response(f, load)["tip"]) for load in self.models.spread_loads(g)],
-                         axis=0) / amp
+            loads = self.models.spread_loads(g)
+            gains = np.array([np.abs(obs.beam.response(f, load)["tip"]) for load in loads]) / amp
+            top = gains.max(axis=0)
+            free = gains[[load is None for load in loads]].max(axis=0)
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
             rise = int(round(scene.control.rise_s * self.fs / self.block))
             beat, tau = self.models.nearest_modes(g, f)
             self._noise_floor(g, obs, c_, slot, bank, chan, f, target)
-            release = [RELEASE_Z * self.control_noise[int(b)] if obs.prefilter[c] > 0 else -1.0
-                       for c, b in zip(c_, bank)]
+            release = [RELEASE_Z * self.control_noise[int(b)]
+                       if fr >= tp * (1 - 1e-9) and obs.windows[c] >= RELEASE_WINDOW * self.fs else -1.0
+                       for c, b, fr, tp in zip(c_, bank, free, top)]
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency,
                                       -(-(obs.window + int(obs.prefilter_memory.max())) // self.block), self.block,
                                       ring, rise,

@@ -304,12 +304,12 @@ def test_a_target_near_the_noise_floor_is_warned_of_before_the_run(tmp_path):
         assert rows[name]["noise_um"] == pytest.approx(20.0 * base, rel=0.01)
 
 
-def test_the_release_rule_is_on_for_the_low_passed_tones_with_three_noise_floors():
-    """The bundled closed scene: the 2, 10 and 40 Hz tones (the channels the observer low-passes,
-    far below the loaded modes, where the lifted beam is the most responsive load) watch for a
-    finger that lets go, with 3 times their estimate's noise floor as allowance; 120 and 250 Hz
-    do not. The drop it makes is the target over the lifted beam's tip per volt, which the
-    model's beam gives here directly."""
+def test_the_release_rule_is_on_where_the_window_is_long_with_three_noise_floors():
+    """The bundled closed scene: the 2, 10, 40 and 120 Hz tones (windows of 500-16.7 ms, at least
+    8 ms; the lifted beam the most responsive load there) watch for a finger that lets go, with 3
+    times their estimate's noise floor as allowance; 250 Hz (a 4 ms window) does not. The drop it
+    makes is the target over the lifted beam's tip per volt, which the model's beam gives here
+    directly."""
     from rtctl.control._kernels import GMAX, JNOISE
 
     s = scene.load("line-bimorph-5-closed")
@@ -317,9 +317,16 @@ def test_the_release_rule_is_on_for_the_low_passed_tones_with_three_noise_floors
     (_, st, ctl), = rig.controllers
     noise = np.array([rig.control_noise[int(b)] for bank in rig.stimulus.bank_index for b in bank])
     on = ctl.state[JNOISE] >= 0
-    assert on.tolist() == [True, True, True, False, False]
+    assert on.tolist() == [True, True, True, True, False]
     np.testing.assert_allclose(ctl.state[JNOISE, on], 3.0 * noise[on], rtol=1e-12)
-    f = np.array([2.0, 10.0, 40.0])
+    f = np.array([2.0, 10.0, 40.0, 120.0])
     lifted = (np.abs(st.observer.beam.response(f, None)["tip"])
               / np.abs(1.0 + 1j * f / s.group("lateral").amplifier.bandwidth))
     np.testing.assert_allclose(ctl.state[GMAX, on], lifted, rtol=1e-9)
+    # 500 Hz, beside a loaded mode that a finger makes more responsive than the lifted beam, and
+    # with a long window on a two-tone channel (500 Hz with 35 Hz): no release rule for it
+    rig = build(scene.load("line-bimorph-5-closed", [
+        "stimulus.tones=[{channel = 0, freq = 500, voltage = 1, target_um = 5}, "
+        "{channel = 0, freq = 35, voltage = 1, target_um = 5}]", "events=[]"]))
+    (_, st, ctl), = rig.controllers
+    assert (ctl.state[JNOISE] >= 0).tolist() == [False, True]

@@ -62,8 +62,10 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  NREL,    # releases since the controller's reset
  PREVY,   # the previous watched block's fresh estimate, m (0: none since the last command)
  RIPPLE,  # how far fresh estimates moved from block to block of late, m (a decaying peak)
- ) = range(55)
-N_STATE = 55
+ NWATCH,  # blocks watched since the last command
+ HIGH,    # fresh estimates in a row that rose as a release does
+ ) = range(57)
+N_STATE = 57
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -158,12 +160,12 @@ EXT_GAIN = 4.0
 TURN = 0.1
 #: a release: a fresh estimate that rises more than this share of the target (and more than its
 #: noise, ``JNOISE``) above the latest on-target estimate of an unchanged command says the finger
-#: let go (lifts off, or presses lighter). Where the rule is on, the drive drops at once to what
-#: puts the target on the most responsive load the model knows (``GMAX``: the lifted beam, at the
-#: low tones the rule is for), which no device the model allows overshoots with, and the loop
-#: watches anew from there. Waiting for a window of the new load (100 ms at 10 Hz) let a lifted
-#: tip swing at up to 3x its target; the window's first blocks already show the rise. Figures:
-#: docs/control.md, "A finger that lets go".
+#: let go (lifts off, or presses lighter). Where the rule is on (a long window, and the lifted
+#: beam the most responsive load the model knows: ``GMAX``), the drive drops at once to what puts
+#: the target on that load, which no device the model allows overshoots with, and the loop
+#: watches anew from there. Waiting for a window of the new load (100 ms at 10 Hz, 33 ms for a
+#: 250 / 30 Hz beat pair) let a lifted tip swing at up to 3.7x its target; the window's first
+#: blocks already show the rise. Figures: docs/control.md, "A finger that lets go".
 RELEASE = 0.02
 #: ... and by more than this many times what the estimate moved from one block to the next of
 #: late (``RIPPLE``: the largest move, decaying by ``RIPPLE_DECAY`` per watched block). After a
@@ -172,6 +174,14 @@ RELEASE = 0.02
 #: it again, and the tone was held 27 % low for a second
 RIPPLE_K = 2.0
 RIPPLE_DECAY = 0.9
+#: ... and not before this many fresh estimates of the command have been watched (two moves from
+#: block to block seen: the ring a correction or an event leaves has shown its size)
+RELEASE_AFTER = 3
+#: ... in this many fresh estimates in a row. A finger pressing harder also lifts the first
+#: estimate after it, by its static step (+4 % at 80 Hz on a 20 mm beam, and the next one 6 %
+#: under the target); a lift-off keeps rising. On one estimate the drive had dropped 5x under the
+#: pressing finger
+RELEASE_RUN = 2
 
 
 @kernel
@@ -190,6 +200,8 @@ def _watch_anew(state, i):
     state[SPREV, i] = 0.0
     state[ANCHOR, i] = 0.0
     state[PREVY, i] = 0.0
+    state[NWATCH, i] = 0.0
+    state[HIGH, i] = 0.0
 
 
 @kernel
@@ -199,14 +211,20 @@ def _released(state, i, y, r, a):
     if not (y > 0.0 and y < math.inf and r > 0.0) or state[JNOISE, i] < 0.0:
         return False
     rip = state[RIPPLE, i]
-    if state[PREVY, i] > 0.0:
-        state[RIPPLE, i] = max(abs(y - state[PREVY, i]), RIPPLE_DECAY * rip)
+    state[NWATCH, i] += 1.0
+    high = (state[NWATCH, i] >= RELEASE_AFTER and state[ANCHOR, i] > 0.0
+            and y - state[ANCHOR, i] > RELEASE * r + state[JNOISE, i] + RIPPLE_K * rip
+            and a * state[GMAX, i] > (1.0 + RELEASE) * r)
+    if high:  # (a rise in progress neither moves the anchor nor counts as ripple)
+        state[HIGH, i] += 1.0
+    else:
+        state[HIGH, i] = 0.0
+        if state[PREVY, i] > 0.0:
+            state[RIPPLE, i] = max(abs(y - state[PREVY, i]), RIPPLE_DECAY * rip)
+        if abs(y / r - 1.0) <= AGREE:
+            state[ANCHOR, i] = y
     state[PREVY, i] = y
-    up = (state[ANCHOR, i] > 0.0 and y - state[ANCHOR, i] > RELEASE * r + state[JNOISE, i] + RIPPLE_K * rip
-          and a * state[GMAX, i] > (1.0 + RELEASE) * r)
-    if not up and abs(y / r - 1.0) <= AGREE:
-        state[ANCHOR, i] = y
-    return up
+    return state[HIGH, i] >= RELEASE_RUN
 
 
 @kernel
@@ -394,6 +412,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 state[SPREV, i] = 0.0
                 state[ANCHOR, i] = 0.0
                 state[PREVY, i] = 0.0
+                state[NWATCH, i] = 0.0
+                state[HIGH, i] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             state[FROZEN, i] = 0.0

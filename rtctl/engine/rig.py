@@ -259,7 +259,7 @@ class Rig:
         channel would pay the call's fixed cost once per channel, and a composed function of a
         thousand calls takes LLVM longer to build than anyone waits)."""
         from ..control import AmplitudeController
-        from ..control.amplitude import RELEASE_Z
+        from ..control.amplitude import RELEASE_WINDOW, RELEASE_Z
 
         self.controlled = {}  # bank tone index -> (controller, its column)
         per_channel = {}
@@ -296,14 +296,13 @@ class Rig:
             beat, tau = self.models.nearest_modes(g, f)  # in turns per block and blocks
             beside = (beat * self.block / self.fs, tau * self.fs / self.block)
             self._noise_floor(g, obs, c_, slot, bank, chan, f, target)
-            # the release rule for the tones far below the loaded beam's modes (those the observer
-            # low-passes), where the most responsive load is the lifted beam: the drop then puts
-            # the target on the lifted tip. Nearer the modes a ring moves the estimate by more
-            # than a release does in its first blocks (on the bundled beam, from 120 Hz up, such
-            # false releases held tones 10-55 % low), and the window is short anyway
+            # the release rule where the most responsive load is the lifted beam (the drop then
+            # puts the target on the lifted tip) and the window is long (a lift-off swings there
+            # for a window; where it is short the loop's own correction comes soon, and a drop in
+            # one block rings the lifted beam for longer than it saves)
             lifted = np.array([x is None for x in loads])
             free = gains[lifted].max(axis=0) if lifted.any() else np.zeros_like(top)
-            release = np.where((obs.prefilter[c_] > 0.0) & (free >= top * (1.0 - 1e-9)),
+            release = np.where((free >= top * (1.0 - 1e-9)) & (obs.windows[c_] >= RELEASE_WINDOW * self.fs),
                                RELEASE_Z * np.array([self.control_noise[int(b)] for b in bank]), -1.0)
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
                                       ring, rise, beside, np.maximum(top, tip), release)
