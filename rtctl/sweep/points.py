@@ -212,7 +212,8 @@ def selfsense_metrics(scene) -> dict:
 
 
 #: Per-channel values of a run's summary that a sweep keeps (none depends on the wall clock).
-RUN_KEYS = ("true_um", "error_pct", "settle_ms", "felt", "saturated", "reachable_um", "estimated_um", "floor_s")
+RUN_KEYS = ("true_um", "error_pct", "settle_ms", "felt", "saturated", "reachable_um", "estimated_um", "floor_s",
+            "releases")
 
 
 def run_metrics(scene, runner) -> dict:
