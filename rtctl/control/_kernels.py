@@ -207,7 +207,7 @@ def _watch_anew(state, i):
 @kernel
 def _released(state, i, y, r, a):
     """Whether tone ``i``'s fresh estimate ``y`` (m; target ``r``, command ``a``) shows a
-    release (``RELEASE``); keeps ``ANCHOR``."""
+    release (``RELEASE``, ``RELEASE_RUN`` estimates in a row); keeps ``ANCHOR``, ``RIPPLE``, ``HIGH``."""
     if not (y > 0.0 and y < math.inf and r > 0.0) or state[JNOISE, i] < 0.0:
         return False
     rip = state[RIPPLE, i]
