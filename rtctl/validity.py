@@ -130,13 +130,14 @@ def _tone_freqs(scene, g) -> tuple:
     """The frequencies (Hz) an observer of bimorph group ``g`` reads: the skin's band of the
     check (``FREQS_HZ``) and every sine of the scene's tones on ``g``'s channels (a 1.2 kHz tone
     on a beam cut to 4 modes read 2 % off, outside that band)."""
+    from .dsp.oscillator import beat_tones
     from .selfsense.truncation import FREQS_HZ
 
     mine = []
     if scene.stimulus.kind == "tones":
         for t in scene.stimulus.tones:
             if t.actuator == g.name:  # (a tone's channel counts within its actuator)
-                mine += [t.freq - t.beat / 2, t.freq + t.beat / 2] if t.beat else [t.freq]
+                mine += beat_tones(t.freq, t.beat, 1.0)[0].tolist()  # (no beat: the carrier twice)
     return tuple(sorted(set(FREQS_HZ) | {float(f) for f in mine if f > 0}))
 
 
