@@ -14,6 +14,7 @@ import math
 import numpy as np
 
 from rtctl.dsp.lockin import LockIn
+from rtctl.dsp.oscillator import beat_tones
 from rtctl.errors import ModelError
 from rtctl.selfsense.frontend import FrontEnd
 from rtctl.selfsense.rt import Observer
@@ -231,8 +232,7 @@ def sweep(fe, base_load=None, freqs=(10.0, 40.0, 120.0, 250.0, 500.0, 1000.0), v
         for name in loads:
             for f in freqs:
                 for beat in ((0.0, beat_hz) if beat_hz else (0.0,)):
-                    fr = [f] if beat == 0.0 else [f - beat / 2, f + beat / 2]
-                    vv = [volts] * len(fr) if beat == 0.0 else [volts / 2] * 2
+                    fr, vv = ([f], [volts]) if beat == 0.0 else (list(a) for a in beat_tones(f, beat, volts))
                     r = run_case(fe, table[name], fr, vv, snr_db=snr_db, mismatch=mm_d,
                                  load_mismatch=fmis, **kw)
                     cases.append({

@@ -187,6 +187,7 @@ def reach_metrics(scene) -> dict:
 
 
 def selfsense_metrics(scene) -> dict:
+    from ..dsp.oscillator import beat_tones
     from ..models import Models
     from ..selfsense.sweep import run_case, truth_modes
 
@@ -197,8 +198,8 @@ def selfsense_metrics(scene) -> dict:
             continue
         fe, finger = models.beam(g), models.finger(g)
         tones = scene.stimulus.tones if scene.stimulus.kind == "tones" else ()
-        freqs = sorted({f for t in tones if t.actuator == g.name and t.shape == "sine"
-                        for f in ((t.freq,) if t.beat == 0 else (t.freq - t.beat / 2, t.freq + t.beat / 2))})
+        freqs = sorted({float(f) for t in tones if t.actuator == g.name and t.shape == "sine"
+                        for f in ((t.freq,) if t.beat == 0 else beat_tones(t.freq, t.beat, 1.0)[0])})
         kw = dict(fs=fs, block=int(scene.timing.block), amplifier_hz=g.amplifier.bandwidth,
                   aa_cutoff_hz=g.sense.aa_cutoff, aa_order=g.sense.aa_order, shunt=g.sense.shunt,
                   n_modes=truth_modes(fe, fs, models.plant_modes(g)))
