@@ -11,7 +11,8 @@ channel driven by a rendered stimulus (no tone), over the analysis window.
 
 A pin between end stops (solenoid, Dot) moves its full stroke or not at all: it has no amplitude
 target, so its target and error are None, as its settle time is. Nothing is felt without a
-finger on the display (``finger.contact = false``): every channel's ``felt`` is then False.
+finger on the display (``finger.contact = false`` at the run's end, after its events): every
+channel's ``felt`` is then False.
 """
 
 from __future__ import annotations
@@ -90,8 +91,11 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
     has_tip = "tip_um" in reader.units
     n_b = n // block if block else 0
     # finger.contact is one switch for the whole display: each group's direction picks the
-    # finger.lateral or finger.normal load, but without contact no group touches a finger.
-    contact = bool(rig.scene.finger.contact)
+    # finger.lateral or finger.normal load, but without contact no group touches a finger. The
+    # row judges the run's last segment: the contact then, after the events that took effect
+    ran = [ev for ev in rig.events if ev.block < n_b]
+    contacts = [bool(rig.scene.finger.contact)] + [bool(ev.scene_after.finger.contact) for ev in ran]
+    contact = contacts[-1]
     rows = []
     for ch in range(rig.n_channels):
         drive = reader.signal("drive", ch)[:n]
@@ -169,19 +173,25 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
                 # error against the target) and the worst settle over all segments
                 start = min(tn.start for tn in tones)
                 segs = _event_settles(rig, tip, t, freqs, n / fs, start, targets)
+                for sg, c_on in zip(segs, contacts):
+                    sg["contact"] = c_on
                 row["start"], row["events"] = segs[0], segs[1:]
                 last = segs[-1]["true_um"]
                 if last is not None:
                     row["true_um"] = amp = last
                     if target_m and math.isfinite(target_m):
                         row["error_pct"] = 100.0 * (amp * 1e-6 - target_m) / target_m
-                times = [sg["settle_ms"] for sg in segs]
-                row["settle_ms"] = None if any(x is None for x in times) else max(times)
+                # the worst over the segments long enough to judge (an event at the instant of
+                # another, or just before the end, leaves one too short to fit an amplitude in)
+                times = [sg["settle_ms"] for sg in segs if sg["judged"]]
+                row["settle_ms"] = None if not times or any(x is None for x in times) else max(times)
             elif main.shape == "sine":
                 st = settle_time(tip, t, freqs, min(tn.start for tn in tones), amp)
                 row["settle_ms"] = None if st is None else 1e3 * st
-        since = max((ev.block for ev in rig.events), default=0)  # the last segment of the run
-        _estimate(row, reader, ch, n_b, block / fs, freqs, target_m, since)
+        # the last segment of the run: from its last event, or from the channel's start
+        since = max((ev.block for ev in ran),
+                    default=int(min((tn.start for tn in tones), default=0.0) * fs) // block)
+        _estimate(row, reader, ch, n_b, block / fs, freqs, target_m, since, lag=rig.estimate_lag(ch))
         _felt(row, contact)
         rows.append(row)
     _control(rig, rows)
@@ -268,7 +278,10 @@ def _control(rig, rows) -> None:
             if sat:  # what the estimate shows at the cap (the run's final window), else the last one used
                 est = row.get("estimated_um")
                 e = float(ctl.state[EST, j])  # NaN while a non-finite reading is in the window
-                if est is None and row.get("reachable_um", 0.0) is not None:
+                # (the last estimate used only where the trace's were not finite; with no window
+                # wholly within the last segment there is nothing to say what it reaches)
+                if est is None and row.get("estimate_window") is not False and \
+                        row.get("reachable_um", 0.0) is not None:
                     est = (row.get("reachable_um") or 0.0) + e * 1e6 if math.isfinite(e) else None
                 row["reachable_um"] = est
 
@@ -305,8 +318,11 @@ def _event_settles(rig, tip, t, freqs, t_end, start, targets=None) -> list[dict]
         final = float(fit_amplitudes(tip[m], t[m], freqs).sum()) if ok else math.nan
         seg = (t >= t0) & (t < t1)
         st = settle_time(tip[seg], t[seg], freqs, t0, final) if math.isfinite(final) else None
+        # judged: an amplitude to settle to, and room for one fit window after the start (a
+        # settle time of None then means it never settled, not that there was nothing to see)
+        judged = bool(math.isfinite(final) and t1 - t0 > fit_window(freqs))
         row = {"t_s": t0, "true_um": final if math.isfinite(final) else None,
-               "settle_ms": None if st is None else 1e3 * st}
+               "settle_ms": None if st is None else 1e3 * st, "judged": judged}
         if targets is not None:
             tgt = targets[i]
             row["target_um"] = _um(tgt)
@@ -327,18 +343,27 @@ def _felt(row, contact: bool) -> None:
 
 
 def _estimate(row, reader, ch, n_blocks, period, freqs, target_m, since: int = 0, blocks=None,
-              peak: bool = False) -> None:
+              peak: bool = False, lag: int | None = None) -> None:
     """The observer's amplitude (median of its per-block estimate over the analysis window, or
     over ``blocks`` ``(first, end)``: a played signal's judged window; their highest with
     ``peak``) into ``row``, with its
     error against the truth where a simulation knows it and, on hardware, the error against
-    the target from the estimate."""
+    the target from the estimate. Without ``blocks``: over the second half of the last segment
+    (from block ``since``: the last event, or the start) and only from ``lag`` blocks after its
+    start (:meth:`Rig.estimate_lag`), so that no window holds the plant before it (a 2 Hz
+    window of 0.5 s would still hold the finger lifted); ``estimate_window`` says whether any
+    was left (if not, ``estimated_um`` stays None)."""
     if not n_blocks or "estimated_tip_um" not in reader.units:
         return
     est = reader.signal("estimated_um", ch)[:n_blocks]
     m = max(1, int(round(analysis_window(n_blocks * period, freqs) / period)))
     if since:  # after an event: only the last segment's second half (what it settled to)
         m = max(1, min(m, (n_blocks - since) // 2))
+    if blocks is None and lag is not None:
+        m = min(m, n_blocks - since - lag)
+        row["estimate_window"] = m > 0
+        if m <= 0:
+            return
     seg = est[-m:] if blocks is None else est[max(0, blocks[0]):max(blocks[0] + 1, blocks[1])]
     seg = seg[np.isfinite(seg)]
     if not seg.size:
@@ -371,7 +396,10 @@ def print_table(summary: dict) -> None:
     for r in summary["channels"]:
         felt = {None: "-", True: "yes", False: "NO" if r["contact"] else "NO (no contact)"}[r["felt"]]
         if r.get("saturated"):
-            note = f" (saturated at max_voltage: reaches {_fmt(r.get('reachable_um'), '.3g')} um)"
+            reach = r.get("reachable_um")
+            note = (f" (saturated at max_voltage: reaches {_fmt(reach, '.3g')} um)" if reach is not None else
+                    " (saturated at max_voltage; no observer window fits in the run's last segment)"
+                    if r.get("estimate_window") is False else " (saturated at max_voltage)")
         elif r["limited"]:
             note = " (limited: " + ", ".join(r.get("limited_by") or ["?"]) + ")"
         else:

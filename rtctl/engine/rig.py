@@ -352,6 +352,17 @@ class Rig:
                     f"observer's window, from actuator.{g.name}.sense noise, bits and shunt): {what}; a target "
                     f"at least {NOISE_MARGIN:g} times the floor reads within 1 %")
 
+    def estimate_lag(self, ch: int) -> int | None:
+        """Blocks from a change of channel ``ch``'s plant to its first estimate that holds none
+        of the time before it (the I/O latency, the low-pass's memory and the lock-in window, in
+        whole blocks, plus one), or None where no observer reads the channel."""
+        for _, st, _, c0 in self.observers:
+            c = ch - c0
+            if 0 <= c < st.observer.n_channels:
+                obs = st.observer
+                return self.latency + int(-(-(obs.windows[c] + obs.prefilter_memory[c]) // self.block)) + 1
+        return None
+
     def hold_control(self) -> None:
         """A requested stop: every amplitude controller holds its command from now on, so
         feedback does not answer the release (the falling amplitude it sees) by raising the
