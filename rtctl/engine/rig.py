@@ -122,6 +122,7 @@ class Rig:
             for ev in self.events:
                 self._events_at.setdefault(ev.block, []).append(ev)
             self.event_targets = self._resolve_event_targets(scene)
+            self._warn_event_noise()
         self.stages = self._stages()
         # the blocks at which apply_schedule has work, sorted (None: any block may; next_busy)
         busy = self.stimulus.busy_blocks()
@@ -333,7 +334,6 @@ class Rig:
     def _noise_floor(self, g, obs, c_, slot, bank, chan, f, target) -> None:
         """Each controlled tone's estimate noise from the group's current sense (its ADC's noise
         and step, over the shunt), and a warning for a target within NOISE_MARGIN of it."""
-        from ..control.amplitude import NOISE_MARGIN
         from ..plant.frontend import CurrentSense
 
         s = g.sense
@@ -342,15 +342,24 @@ class Rig:
         for c, k, b, ch, fk, r in zip(c_, slot, bank, chan, f, target):
             noise = float(floor[c, k])
             self.control_noise[int(b)] = noise
-            if r < NOISE_MARGIN * noise:
-                what = (f"the estimate reads high by about {25.0 * (noise / r) ** 2:.2g} %, and the loop holds the "
-                        "tip that much low" if r > 2.0 * noise else
-                        "the estimate is mostly that noise, and the loop cannot hold the tip there")
-                self.warnings.append(
-                    f"channel {self.channel_names[int(ch)]}: the {fk:g} Hz target {r * 1e6:.3g} um is "
-                    f"{r / noise:.2g} times the self-sensing noise floor there ({noise * 1e6:.2g} um rms over the "
-                    f"observer's window, from actuator.{g.name}.sense noise, bits and shunt): {what}; a target "
-                    f"at least {NOISE_MARGIN:g} times the floor reads within 1 %")
+            self._warn_noise(int(ch), fk, r, noise, g.name)
+
+    def _warn_noise(self, ch: int, f: float, r: float, noise: float, group: str, when: str = "") -> None:
+        """A warning for a controlled sine's target ``r`` (m) within NOISE_MARGIN of its estimate's
+        noise floor ``noise`` (m rms); ``when``: what set it, if not the scene."""
+        from ..control.amplitude import NOISE_MARGIN
+
+        if r >= NOISE_MARGIN * noise:
+            return
+        what = (f"the estimate reads high by about {25.0 * (noise / r) ** 2:.2g} %, the loop holds the tip that "
+                "much low and its corrections follow the noise (held up to about 20 / (target / floor) % off, "
+                "settling in up to a second)" if r > 2.0 * noise else
+                "the estimate is mostly that noise, and the loop cannot hold the tip there")
+        self.warnings.append(
+            f"channel {self.channel_names[ch]}: the {f:g} Hz target {r * 1e6:.3g} um{when} is "
+            f"{r / noise:.2g} times the self-sensing noise floor there ({noise * 1e6:.2g} um rms over the "
+            f"observer's window, from actuator.{group}.sense noise, bits and shunt): {what}; a target "
+            f"at least {NOISE_MARGIN:g} times the floor is held within 1 % at the loop's pace")
 
     def estimate_lag(self, ch: int) -> int | None:
         """Blocks from a change of channel ``ch``'s plant to its first estimate that holds none
@@ -574,6 +583,16 @@ class Rig:
                                      f"and {why}: give the target in um")
                 out.setdefault(i, []).append((n, target_m))
         return out
+
+    def _warn_event_noise(self) -> None:
+        """The noise floor's warning for the targets events set, as for the scene's own."""
+        for ev in self.events:
+            for n, target_m in self.event_targets.get(ev.index, ()):
+                tone, bank = self.tones[n], self.stimulus.bank_index[n]
+                for f, b in zip(tone.freqs, bank):
+                    if self.controllers and int(b) in self.controlled:
+                        self._warn_noise(tone.channel, f, target_m / len(bank), self.control_noise[int(b)],
+                                         self.channel_groups[tone.channel], f" (events.{ev.index}, at {ev.at:g} s)")
 
     def _apply_event(self, ev) -> None:
         """An event's writes: the device's (a simulated finger's load) and new tone targets
