@@ -72,13 +72,15 @@ def load(path) -> Pattern:
     if p.suffix.lower() not in FORMATS:
         raise PatternError(f"{path}: not a pattern file (expected {' or '.join(FORMATS)})")
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
+        data = json.loads(p.read_text(encoding="utf-8"), parse_int=_int)
     except FileNotFoundError:
         raise PatternError(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError) as e:
         raise PatternError(f"{path}: cannot read: {e}") from None
     except json.JSONDecodeError as e:
         raise PatternError(f"{path}: not valid JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    except RecursionError:  # the decoder recurses per level: thousands of [ or { exhaust the stack
+        raise PatternError(f"{path}: arrays or objects nested too deeply to read (no pattern item is)") from None
     pat = Pattern(str(path))
     if not isinstance(data, dict):
         raise PatternError(f"{path}: the top level must be a JSON object")
@@ -90,16 +92,49 @@ def load(path) -> Pattern:
 
 # ----------------------------------------------------------------------------- reading values
 
+#: digits an integer literal may have: more is no time or level (a float holds at most 309), and
+#: Python refuses to convert more than 4300 at all
+MAX_DIGITS = 300
+
+
+class _Huge(str):
+    """An integer literal too long to be a number here, kept as its text for the message."""
+
+
+def _int(text: str):
+    return int(text) if len(text) <= MAX_DIGITS else _Huge(text)
+
+
+def _show(v) -> str:
+    """``v`` for a one-line message: short, whatever it is (a container is not spelled out: it
+    may be nested thousands deep)."""
+    if isinstance(v, _Huge):
+        return f"an integer of {len(v.lstrip('-'))} digits"
+    if isinstance(v, dict):
+        return "a JSON object"
+    if isinstance(v, list):
+        return "a JSON array"
+    s = repr(v) if isinstance(v, str) else json.dumps(v)
+    return s if len(s) <= 40 else s[:37] + "..."
+
 
 def _num(pat, v, where, lo=None, hi=None):
     """A finite number at ``where``, clamped into [lo, hi] with a warning."""
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise PatternError(f"{pat.source}: {where} = {json.dumps(v)[:40]}: must be a finite number")
+        why = "too large for a time or a level" if isinstance(v, _Huge) else "must be a finite number"
+        raise PatternError(f"{pat.source}: {where} = {_show(v)}: {why}")
     v = float(v)
     if (lo is not None and v < lo) or (hi is not None and v > hi):
         c = min(max(v, lo if lo is not None else v), hi if hi is not None else v)
         pat.warn(f"{where} = {v:g} is outside [{lo:g}, {hi:g}]: clamped to {c:g}")
         v = c
+    return v
+
+
+def _str(pat, v, where):
+    """A string at ``where``: a name compared with the ones the format knows."""
+    if not isinstance(v, str) or isinstance(v, _Huge):
+        raise PatternError(f"{pat.source}: {where} = {_show(v)}: must be a string")
     return v
 
 
@@ -118,7 +153,8 @@ def _list(pat, v, where):
 def _unknown(pat, d, known, where):
     for k in d:
         if k not in known:
-            pat.warn(f"{where}.{k}: not used (ignored)")
+            name = k if len(k) <= 40 and k.isprintable() else _show(k)  # one short line
+            pat.warn(f"{where}.{name}: not used (ignored)")
 
 
 def _need(pat, d, key, where):
@@ -148,9 +184,9 @@ def _ahap(data, pat):
         if kind == "Event":
             events.append((where, body))
         elif kind in ("ParameterCurve", "Parameter"):
-            pid = _need(pat, body, "ParameterID", where)
+            pid = _str(pat, _need(pat, body, "ParameterID", where), f"{where}.ParameterID")
             if pid not in _CURVES:
-                pat.warn(f"{where}.ParameterID = {pid!r}: not used (ignored)")
+                pat.warn(f"{where}.ParameterID = {_show(pid)}: not used (ignored)")
                 continue
             lo, hi = _CURVES[pid]
             t0 = _num(pat, _need(pat, body, "Time", where), f"{where}.Time", 0.0, math.inf)
@@ -202,19 +238,19 @@ def _at(ctl, t):
 
 
 def _ahap_event(pat, where, ev, gain, shift):
-    etype = _need(pat, ev, "EventType", where)
+    etype = _str(pat, _need(pat, ev, "EventType", where), f"{where}.EventType")
     _unknown(pat, ev, ("Time", "EventType", "EventDuration", "EventParameters", "EventWaveformPath"), where)
     if etype not in ("HapticTransient", "HapticContinuous"):
-        pat.warn(f"{where}.EventType = {etype!r}: not a haptic event (ignored)")
+        pat.warn(f"{where}.EventType = {_show(etype)}: not a haptic event (ignored)")
         return
     t0 = _num(pat, _need(pat, ev, "Time", where), f"{where}.Time", 0.0, math.inf)
     params = {"HapticIntensity": 1.0, "HapticSharpness": 0.5}  # Core Haptics' defaults
     for j, prm in enumerate(_list(pat, ev.get("EventParameters", []), f"{where}.EventParameters")):
         w = f"{where}.EventParameters[{j}]"
         prm = _obj(pat, prm, w)
-        pid = _need(pat, prm, "ParameterID", w)
+        pid = _str(pat, _need(pat, prm, "ParameterID", w), f"{w}.ParameterID")
         if pid not in params:
-            pat.warn(f"{w}.ParameterID = {pid!r}: not used (ignored)")
+            pat.warn(f"{w}.ParameterID = {_show(pid)}: not used (ignored)")
             continue
         params[pid] = _num(pat, _need(pat, prm, "ParameterValue", w), f"{w}.ParameterValue ({pid})", 0.0, 1.0)
     inten, sharp = params["HapticIntensity"], params["HapticSharpness"]
@@ -242,8 +278,8 @@ def _haptic(data, pat):
     _unknown(pat, data, ("version", "metadata", "signals"), "")
     ver = _obj(pat, _need(pat, data, "version", "top level"), "version")
     major = ver.get("major")
-    if major != 1:
-        raise PatternError(f"{pat.source}: version.major = {json.dumps(major)}: only version 1 is read")
+    if isinstance(major, bool) or major != 1:  # true == 1 in Python, not in the format
+        raise PatternError(f"{pat.source}: version.major = {_show(major)}: only version 1 is read")
     sig = _obj(pat, _need(pat, data, "signals", "top level"), "signals")
     _unknown(pat, sig, ("continuous",), "signals")
     cont = _obj(pat, _need(pat, sig, "continuous", "signals"), "signals.continuous")

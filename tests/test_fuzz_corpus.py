@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from fuzzing import clean_or_clear, one_line, run_cli
 
-from rtctl import scene
-from rtctl.errors import RtctlError, SceneError
+from rtctl import patterns, scene
+from rtctl.errors import PatternError, RtctlError, SceneError
 from rtctl.io import protocol as P
 
 CORPUS = Path(__file__).with_name("corpus")
@@ -22,7 +22,7 @@ def _expect(kind):
 
 
 def test_every_corpus_file_says_what_it_must_produce():
-    for kind in ("scene", "image", "serial", "trace", "calibration"):
+    for kind in ("scene", "image", "serial", "trace", "calibration", "pattern"):
         files = {p.name for p in (CORPUS / kind).iterdir() if p.name != "expect.json"}
         assert files == set(_expect(kind)), kind
 
@@ -151,6 +151,16 @@ def test_calibration_files(name):
     path = CORPUS / "calibration" / name
     result = clean_or_clear(read, path, scene.load("line-bimorph-5"), errors=SceneError)
     _check(result, _expect("calibration")[name], str(path))
+
+
+@pytest.mark.parametrize("name", sorted(_expect("pattern")))
+def test_pattern_files(name):
+    path = CORPUS / "pattern" / name
+    result = clean_or_clear(patterns.load, path, errors=PatternError, names=[str(path)])
+    _check(result, _expect("pattern")[name])
+    if _expect("pattern")[name] != "ok":  # a good one would run the whole scene
+        status, _, err = run_cli(["play", str(path), "--scene", "pvdf-6x8"])
+        assert status == 2, err
 
 
 VARIES = json.loads((CORPUS / "vary.json").read_text(encoding="utf-8"))
