@@ -217,24 +217,55 @@ def _ahap(data, pat):
 
 
 def _held(curves, rest):
-    """A control as breakpoints ``(t, v, rest)``: each curve straight between its points, its last
-    value held until the next curve begins; ``rest`` before the first (read with :func:`_at`)."""
+    """A control as breakpoints ``(t, v, rest)``, ``t`` never decreasing (two points at one time:
+    a step), ``rest`` before the first; read with :func:`_left` and :func:`_right`.
+
+    Each curve is straight between its points and holds its last value until the next curve
+    begins; a curve that begins before the one before it has ended takes over from its start (as
+    Core Haptics schedules a curve: applied from its start time, from whatever value the
+    parameter has then). Curves that begin at one time: the later in the file."""
     ts, vs = [], []
-    for pts in sorted(curves, key=lambda p: p[0][0]):
-        if ts and pts[0][0] > ts[-1]:
-            ts.append(pts[0][0])
-            vs.append(vs[-1])  # held up to the next curve, then a step to its first point
+    curves = sorted(curves, key=lambda p: p[0][0])  # stable: file order among equal starts
+    for k, pts in enumerate(curves):
+        nxt = curves[k + 1][0][0] if k + 1 < len(curves) else math.inf
+        if nxt <= pts[0][0]:
+            continue  # replaced at once by the next
         for t, v in pts:
+            if t >= nxt:
+                break
             ts.append(t)
             vs.append(v)
+        if nxt < math.inf:  # up to the next curve: the rest of this one (cut there) or its last value held
+            pt, pv = [p[0] for p in pts], [p[1] for p in pts]
+            ts.append(nxt)
+            vs.append(float(np.interp(nxt, pt, pv)) if pt[-1] > nxt else pv[-1])
     if not ts:
         return np.array([0.0]), np.array([rest]), rest
     return np.array(ts), np.array(vs), rest
 
 
-def _at(ctl, t):
+def _right(ctl, t):
+    """The control at ``t`` (an array): after a step there (a curve that starts at ``t`` applies)."""
     ts, vs, rest = ctl
-    return np.interp(t, ts, vs, left=rest)
+    t = np.asarray(t, float)
+    j = np.searchsorted(ts, t, side="right")  # ts[j - 1] <= t < ts[j]
+    lo, hi = np.maximum(j - 1, 0), np.minimum(j, len(ts) - 1)
+    span = ts[hi] - ts[lo]
+    frac = np.where(span > 0, (t - ts[lo]) / np.where(span > 0, span, 1.0), 0.0)
+    v = vs[lo] + frac * (vs[hi] - vs[lo])
+    return np.where(j == 0, rest, np.where(j == len(ts), vs[-1], v))
+
+
+def _left(ctl, t):
+    """The control just before ``t`` (an array): before a step there."""
+    ts, vs, rest = ctl
+    t = np.asarray(t, float)
+    i = np.searchsorted(ts, t, side="left")  # ts[i - 1] < t <= ts[i]
+    lo, hi = np.maximum(i - 1, 0), np.minimum(i, len(ts) - 1)
+    span = ts[hi] - ts[lo]
+    frac = np.where(span > 0, (t - ts[lo]) / np.where(span > 0, span, 1.0), 0.0)
+    v = vs[lo] + frac * (vs[hi] - vs[lo])
+    return np.where(i == 0, rest, np.where(i == len(ts), vs[-1], v))
 
 
 def _ahap_event(pat, where, ev, gain, shift):
@@ -255,19 +286,29 @@ def _ahap_event(pat, where, ev, gain, shift):
         params[pid] = _num(pat, _need(pat, prm, "ParameterValue", w), f"{w}.ParameterValue ({pid})", 0.0, 1.0)
     inten, sharp = params["HapticIntensity"], params["HapticSharpness"]
     if etype == "HapticTransient":
-        g = float(_at(gain, t0))
-        s = min(max(sharp + float(_at(shift, t0)), 0.0), 1.0)
+        g = float(_right(gain, t0))
+        s = min(max(sharp + float(_right(shift, t0)), 0.0), 1.0)
         pat.transients.append((t0, inten * g, s))
         return
     dur = _num(pat, _need(pat, ev, "EventDuration", where), f"{where}.EventDuration", 0.0, 30.0)
     if dur <= 0.0:
         pat.warn(f"{where}.EventDuration = 0: nothing to play (ignored)")
         return
-    # the event's span, with every control point inside it
-    inner = [t for t in np.concatenate([gain[0], shift[0]]) if t0 < t < t0 + dur]
-    t = np.unique(np.concatenate([[t0], inner, [t0 + dur]]))
-    levels = inten * _at(gain, t)
-    sharps = np.clip(sharp + _at(shift, t), 0.0, 1.0)
+    # the event's span, with every control point inside it; where a control steps (a curve taking
+    # over), two points at that time: the value before and after
+    end = t0 + dur
+    inner = np.unique([t for t in np.concatenate([gain[0], shift[0]]) if t0 < t < end])
+    t = np.concatenate([[t0], inner, [end]])
+    lg, rg, ls, rs = _left(gain, t), _right(gain, t), _left(shift, t), _right(shift, t)
+    lg[0], ls[0], rg[-1], rs[-1] = rg[0], rs[0], lg[-1], ls[-1]  # the event starts after, ends before a step
+    step = (lg != rg) | (ls != rs)
+    t = np.concatenate([t[step], t])
+    g = np.concatenate([lg[step], rg])
+    sh = np.concatenate([ls[step], rs])
+    order = np.argsort(t, kind="stable")  # the value before a step first
+    t, g, sh = t[order], g[order], sh[order]
+    levels = inten * g
+    sharps = np.clip(sharp + sh, 0.0, 1.0)
     pat.continuous.append((t0, t - t0, levels, t - t0, sharps))
 
 

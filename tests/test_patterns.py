@@ -144,3 +144,34 @@ def test_play_drops_scene_events_after_a_shorter_run_with_one_warning(capsys, tm
     assert err.count("\n") == 1 and "events.1..2" in err and json.loads(out)["duration_s"] == pytest.approx(1.3)
     code, _, err = run_cli(capsys, "run", "line-bimorph-5-closed", "--duration", "1.3", "--out", str(tmp_path / "r"))
     assert code == 2 and "events.1.at = 1.4: after the end of the run (1.3 s)" in err
+
+
+def _ahap_continuous(*curves, dur=2.0, intensity=1.0):
+    return {"Pattern": [
+        {"Event": {"Time": 0.0, "EventType": "HapticContinuous", "EventDuration": dur,
+                   "EventParameters": [{"ParameterID": "HapticIntensity", "ParameterValue": intensity}]}},
+        *[{"ParameterCurve": {"ParameterID": "HapticIntensityControl", "Time": t,
+                              "ParameterCurveControlPoints": [{"Time": a, "ParameterValue": v} for a, v in pts]}}
+          for t, pts in curves]]}
+
+
+def test_a_later_curve_takes_over_from_its_start(tmp_path):
+    """Curve A (1 from 0 to 1 s) and B at 0.5 s (0 to 0.7 s): from 0.5 s on B rules, held at its
+    last value; a step at 0.5 s as two points at one time, every time in order."""
+    f = _write(tmp_path, "over.ahap", _ahap_continuous((0.0, [(0.0, 1.0), (1.0, 1.0)]),
+                                                       (0.5, [(0.0, 0.0), (0.2, 0.0)])))
+    p = patterns.load(f)
+    (t0, times, levels, _, _), = p.continuous
+    np.testing.assert_allclose(times, [0.0, 0.5, 0.5, 0.7, 2.0])
+    np.testing.assert_allclose(levels, [1.0, 1.0, 0.0, 0.0, 0.0])
+    # cut mid-ramp: A (0 -> 1 over 1 s) gives way at 0.4 s to B at 0.5, which ramps 0.5 -> 0.9
+    f = _write(tmp_path, "cut.ahap", _ahap_continuous((0.0, [(0.0, 0.0), (1.0, 1.0)]),
+                                                      (0.4, [(0.0, 0.5), (0.5, 0.9)]), dur=1.0))
+    (t0, times, levels, _, _), = patterns.load(f).continuous
+    np.testing.assert_allclose(times, [0.0, 0.4, 0.4, 0.9, 1.0])
+    np.testing.assert_allclose(levels, [0.0, 0.4, 0.5, 0.9, 0.9])
+    # a transient reads the curve that rules at its time
+    f = _write(tmp_path, "tr.ahap", {"Pattern": [
+        *_ahap_continuous((0.0, [(0.0, 1.0), (1.0, 1.0)]), (0.5, [(0.0, 0.25), (0.2, 0.25)]))["Pattern"][1:],
+        {"Event": {"Time": 0.6, "EventType": "HapticTransient"}}]})
+    assert patterns.load(f).transients == [(0.6, 0.25, 0.5)]
