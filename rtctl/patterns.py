@@ -52,6 +52,12 @@ class Pattern:
         self.continuous: list[tuple] = []
         self.transients: list[tuple] = []
         self.warnings: list[str] = []
+        #: the item each event was read from (``Pattern[2].Event``), in the order of ``continuous``
+        #: and ``transients``: messages about an event name it
+        self.continuous_from: list[str] = []
+        self.transients_from: list[str] = []
+        #: why events were read but left out (intensity 0 throughout, no length): said when none is left
+        self.skipped: list[str] = []
 
     @property
     def end(self) -> float:
@@ -61,6 +67,29 @@ class Pattern:
 
     def warn(self, msg: str) -> None:
         self.warnings.append(f"{self.source}: {msg}")
+
+    def skip(self, msg: str) -> None:
+        """An event that plays nothing: warned, and remembered in case it was the only one."""
+        self.skipped.append(msg)
+        self.warn(f"{msg} (ignored)")
+
+    def events(self) -> list[tuple[float, float, str]]:
+        """``(start, end, item)`` of every event, in the order of ``continuous`` then ``transients``."""
+        return ([(t0, t0 + times[-1], w) for (t0, times, *_), w in zip(self.continuous, self.continuous_from)]
+                + [(t, t, w) for (t, *_), w in zip(self.transients, self.transients_from)])
+
+    def drop_from(self, t_end: float) -> list[tuple[float, str]]:
+        """Leave out the events that start at or after ``t_end`` (they would never play);
+        ``(start, item)`` of each, in time order."""
+        keep_c = [i for i, (t0, *_) in enumerate(self.continuous) if t0 < t_end]
+        keep_t = [i for i, (t, *_) in enumerate(self.transients) if t < t_end]
+        dropped = sorted([(t0, w) for (t0, *_), w in zip(self.continuous, self.continuous_from) if t0 >= t_end]
+                         + [(t, w) for (t, *_), w in zip(self.transients, self.transients_from) if t >= t_end])
+        self.continuous = [self.continuous[i] for i in keep_c]
+        self.continuous_from = [self.continuous_from[i] for i in keep_c]
+        self.transients = [self.transients[i] for i in keep_t]
+        self.transients_from = [self.transients_from[i] for i in keep_t]
+        return dropped
 
 
 def load(path) -> Pattern:
@@ -86,6 +115,9 @@ def load(path) -> Pattern:
         raise PatternError(f"{path}: the top level must be a JSON object")
     (_ahap if p.suffix.lower() == ".ahap" else _haptic)(data, pat)
     if not pat.continuous and not pat.transients:
+        if pat.skipped:
+            why = "; ".join(pat.skipped[:3]) + ("; ..." if len(pat.skipped) > 3 else "")
+            raise PatternError(f"{path}: nothing to play: {why}")
         raise PatternError(f"{path}: no haptic events in the pattern")
     return pat
 
@@ -288,11 +320,16 @@ def _ahap_event(pat, where, ev, gain, shift):
     if etype == "HapticTransient":
         g = float(_right(gain, t0))
         s = min(max(sharp + float(_right(shift, t0)), 0.0), 1.0)
+        if inten * g <= 0.0:
+            pat.skip(f"{where}: intensity 0 at {t0:g} s (HapticIntensity {inten:g} x HapticIntensityControl "
+                     f"{g:g}): plays nothing")
+            return
         pat.transients.append((t0, inten * g, s))
+        pat.transients_from.append(where)
         return
     dur = _num(pat, _need(pat, ev, "EventDuration", where), f"{where}.EventDuration", 0.0, 30.0)
     if dur <= 0.0:
-        pat.warn(f"{where}.EventDuration = 0: nothing to play (ignored)")
+        pat.skip(f"{where}.EventDuration = 0: nothing to play")
         return
     # the event's span, with every control point inside it; where a control steps (a curve taking
     # over), two points at that time: the value before and after
@@ -308,8 +345,13 @@ def _ahap_event(pat, where, ev, gain, shift):
     order = np.argsort(t, kind="stable")  # the value before a step first
     t, g, sh = t[order], g[order], sh[order]
     levels = inten * g
+    if not np.any(levels > 0.0):
+        pat.skip(f"{where}: intensity 0 throughout (HapticIntensity {inten:g} x HapticIntensityControl): "
+                 "plays nothing")
+        return
     sharps = np.clip(sharp + sh, 0.0, 1.0)
     pat.continuous.append((t0, t - t0, levels, t - t0, sharps))
+    pat.continuous_from.append(where)
 
 
 # ----------------------------------------------------------------------------- .haptic
@@ -340,10 +382,11 @@ def _haptic(data, pat):
         if "emphasis" in bp:
             em = _obj(pat, bp["emphasis"], f"{wi}.emphasis")
             _unknown(pat, em, ("amplitude", "frequency"), f"{wi}.emphasis")
-            pat.transients.append((t, _num(pat, _need(pat, em, "amplitude", f"{wi}.emphasis"),
-                                           f"{wi}.emphasis.amplitude", 0.0, 1.0),
-                                   _num(pat, _need(pat, em, "frequency", f"{wi}.emphasis"),
-                                        f"{wi}.emphasis.frequency", 0.0, 1.0)))
+            ea = _num(pat, _need(pat, em, "amplitude", f"{wi}.emphasis"), f"{wi}.emphasis.amplitude", 0.0, 1.0)
+            ef = _num(pat, _need(pat, em, "frequency", f"{wi}.emphasis"), f"{wi}.emphasis.frequency", 0.0, 1.0)
+            if ea > 0.0:  # an emphasis of 0 adds nothing to the envelope under it
+                pat.transients.append((t, ea, ef))
+                pat.transients_from.append(f"{wi}.emphasis")
     if len(ta) < 2 or any(b < a for a, b in zip(ta, ta[1:])):
         raise PatternError(f"{pat.source}: {w}: needs at least 2 breakpoints, in time order")
     tf, vf = [], []
@@ -356,6 +399,13 @@ def _haptic(data, pat):
         vf.append(_num(pat, _need(pat, bp, "frequency", wi), f"{wi}.frequency", 0.0, 1.0))
     if any(b < a for a, b in zip(tf, tf[1:])):
         raise PatternError(f"{pat.source}: {w}: breakpoints must be in time order")
+    w = "signals.continuous.envelopes.amplitude"
+    if ta[-1] == ta[0]:
+        pat.skip(f"{w}: every breakpoint at {ta[0]:g} s: the envelope lasts no time, plays nothing")
+        return
+    if max(va) <= 0.0:
+        pat.skip(f"{w}: every amplitude is 0: plays nothing")
+        return
     t0 = ta[0]
     ta = np.array(ta) - t0
     if tf:  # on the amplitude's span, straight between, held outside
@@ -364,6 +414,7 @@ def _haptic(data, pat):
     else:
         tt, fv = np.array([0.0]), np.array([0.5])
     pat.continuous.append((t0, ta, np.array(va), tt, fv))
+    pat.continuous_from.append(w)
 
 
 # ----------------------------------------------------------------------------- to signals

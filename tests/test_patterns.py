@@ -175,3 +175,40 @@ def test_a_later_curve_takes_over_from_its_start(tmp_path):
         *_ahap_continuous((0.0, [(0.0, 1.0), (1.0, 1.0)]), (0.5, [(0.0, 0.25), (0.2, 0.25)]))["Pattern"][1:],
         {"Event": {"Time": 0.6, "EventType": "HapticTransient"}}]})
     assert patterns.load(f).transients == [(0.6, 0.25, 0.5)]
+
+
+def test_events_that_play_nothing_are_warned_and_a_pattern_of_only_them_refused(tmp_path):
+    f = _write(tmp_path, "zero.ahap", {"Pattern": [
+        {"Event": {"Time": 0.1, "EventType": "HapticTransient",
+                   "EventParameters": [{"ParameterID": "HapticIntensity", "ParameterValue": 0}]}},
+        {"Event": {"Time": 0.2, "EventType": "HapticTransient"}}]})
+    p = patterns.load(f)
+    assert p.transients == [(0.2, 1.0, 0.5)]
+    assert p.warnings == [f"{f}: Pattern[0].Event: intensity 0 at 0.1 s (HapticIntensity 0 x "
+                          "HapticIntensityControl 1): plays nothing (ignored)"]
+    f = _write(tmp_path, "zero.ahap", _ahap_continuous((0.0, [(0.0, 0.0)])))
+    with pytest.raises(PatternError, match=r"nothing to play: Pattern\[0\].Event: intensity 0 throughout"):
+        patterns.load(f)
+    f = _write(tmp_path, "same.haptic", {"version": {"major": 1}, "signals": {"continuous": {"envelopes": {
+        "amplitude": [{"time": 0.5, "amplitude": 1}, {"time": 0.5, "amplitude": 1}]}}}})
+    with pytest.raises(PatternError, match="nothing to play: .*every breakpoint at 0.5 s: the envelope lasts no time"):
+        patterns.load(f)
+    f = _write(tmp_path, "silent.haptic", {"version": {"major": 1}, "signals": {"continuous": {"envelopes": {
+        "amplitude": [{"time": 0, "amplitude": 0}, {"time": 1, "amplitude": 0}]}}}})
+    with pytest.raises(PatternError, match="nothing to play: .*every amplitude is 0"):
+        patterns.load(f)
+
+
+def test_pattern_events_after_a_shorter_run_are_dropped_with_a_warning(capsys, tmp_path):
+    """heartbeat.ahap's continuous event starts at 0.6 s: `--duration 0.4` leaves it out and says
+    so; `--duration 0.9` plays it cut off and says that."""
+    s, warnings = pattern_scene("heartbeat.ahap", "line-bimorph-5", duration=0.4)
+    assert warnings == ["heartbeat.ahap: Pattern[2].Event (at 0.6 s) comes at or after the end of the run "
+                        "(0.4 s): dropped"]
+    assert sorted(p["start"] for p in s.to_dict()["stimulus"]["play"]) == [0.05, 0.30]
+    s, warnings = pattern_scene("heartbeat.ahap", "line-bimorph-5", duration=0.9)
+    assert warnings == ["heartbeat.ahap: Pattern[2].Event (to 1.2 s) goes on after the end of the run (0.9 s): "
+                        "cut off"]
+    f = _write(tmp_path, "late.ahap", {"Pattern": [{"Event": {"Time": 0.5, "EventType": "HapticTransient"}}]})
+    code, _, err = run_cli(capsys, "play", f, "--scene", "line-bimorph-5", "--duration", "0.4")
+    assert code == 2 and "every event starts at or after the end of the run (0.4 s)" in err and err.count("\n") == 1
