@@ -78,6 +78,10 @@ class Pattern:
         return ([(t0, t0 + times[-1], w) for (t0, times, *_), w in zip(self.continuous, self.continuous_from)]
                 + [(t, t, w) for (t, *_), w in zip(self.transients, self.transients_from)])
 
+    def last(self) -> tuple[float, str]:
+        """``(end, item)`` of the event that ends last."""
+        return max(((end, w) for _, end, w in self.events()), key=lambda e: e[0])
+
     def drop_from(self, t_end: float) -> list[tuple[float, str]]:
         """Leave out the events that start at or after ``t_end`` (they would never play);
         ``(start, item)`` of each, in time order."""

@@ -5,6 +5,10 @@ from __future__ import annotations
 from . import patterns
 from . import scene as sc
 from .errors import PatternError, SceneError
+from .schema import SCENE
+
+#: the longest run a scene may ask for, s (timing.duration's bound)
+MAX_DURATION = SCENE.keys["timing"].keys["duration"].hi
 
 
 def pattern_scene(pattern: str, source: str, overrides=(), duration: float | None = None):
@@ -21,10 +25,20 @@ def pattern_scene(pattern: str, source: str, overrides=(), duration: float | Non
     if st["kind"] != "tones":
         raise SceneError(f"{s.source}: stimulus.kind = {st['kind']!r}: a pattern plays on a tones scene")
     m = s.stimulus.pattern
+    # checked here, not by the signals the band becomes: their messages name signals the user never wrote
+    nyq = s.timing.fs / 2
+    if not all(0.0 < f < nyq for f in m.band):
+        raise SceneError(f"{s.source}: stimulus.pattern.band = {list(m.band)}: both ends must be in "
+                         f"(0, fs / 2 = {nyq:g}) Hz")
     group = s.group(m.actuator or s.actuator[0].name)
     t = data["timing"]
     if duration is None:
-        duration = max(t["duration"], pat.end + tail(m, st))
+        end = pat.end + tail(m, st)
+        if end > MAX_DURATION:  # the pattern's time, not the scene's duration, is what is too long
+            last, item = pat.last()
+            raise PatternError(f"{pat.source}: {item} ends at {last:g} s: a run holding it would last {end:g} s, "
+                               f"longer than the {MAX_DURATION:g} s a run may (give --duration to play its start)")
+        duration = max(t["duration"], end)
     t["duration"] = duration
     dropped = []  # said after the pattern's own warnings (to_stimulus adds some)
     late = pat.drop_from(duration)

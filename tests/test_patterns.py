@@ -8,7 +8,7 @@ import pytest
 from test_cli import run_cli
 
 from rtctl import patterns
-from rtctl.errors import PatternError
+from rtctl.errors import PatternError, SceneError
 from rtctl.play import pattern_scene
 from rtctl.stimulus import Stimulus
 
@@ -212,3 +212,22 @@ def test_pattern_events_after_a_shorter_run_are_dropped_with_a_warning(capsys, t
     f = _write(tmp_path, "late.ahap", {"Pattern": [{"Event": {"Time": 0.5, "EventType": "HapticTransient"}}]})
     code, _, err = run_cli(capsys, "play", f, "--scene", "line-bimorph-5", "--duration", "0.4")
     assert code == 2 and "every event starts at or after the end of the run (0.4 s)" in err and err.count("\n") == 1
+
+
+def test_a_pattern_too_long_to_play_names_the_pattern_not_the_scene(capsys, tmp_path):
+    f = _write(tmp_path, "long.ahap", {"Pattern": [{"Event": {"Time": 0.1, "EventType": "HapticTransient"}},
+                                                   {"Event": {"Time": 1e6, "EventType": "HapticTransient"}}]})
+    with pytest.raises(PatternError, match=r"long.ahap: Pattern\[1\].Event ends at 1e\+06 s: .* longer than the "
+                                           "86400 s a run may"):
+        pattern_scene(f, "line-bimorph-5")
+    code, _, err = run_cli(capsys, "play", f, "--scene", "line-bimorph-5")
+    assert code == 2 and "long.ahap: Pattern[1].Event" in err and ".toml" not in err
+
+
+@pytest.mark.parametrize("band", ["[0, 0]", "[80, 24000]"])
+def test_a_band_outside_the_playable_frequencies_names_stimulus_pattern_band(capsys, band):
+    with pytest.raises(SceneError, match=r"stimulus\.pattern\.band = .*: both ends must be in \(0, fs / 2 = 24000\)"):
+        pattern_scene("heartbeat.ahap", "line-bimorph-5", [f"stimulus.pattern.band={band}"])
+    code, _, err = run_cli(capsys, "play", "heartbeat.ahap", "--scene", "line-bimorph-5",
+                           f"--set=stimulus.pattern.band={band}")
+    assert code == 2 and ("stimulus.pattern.band" in err) and "signals" not in err, err
