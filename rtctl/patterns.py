@@ -2,14 +2,16 @@
 ``.haptic`` files, read into scene signals (:mod:`rtctl.signals`) for ``rtctl play``.
 
 What is read (everything else is ignored with a warning; a value out of range is clamped and
-reported; a file that is not the format is refused in one line):
+reported; an event that plays nothing is left out with a warning; a file that is not the format,
+or has nothing to play, is refused in one line):
 
 * ``.ahap`` (JSON, Apple's "Representing haptic patterns in AHAP files"): ``Pattern`` items
   ``Event`` (``HapticTransient``; ``HapticContinuous`` with ``EventDuration``; parameters
   ``HapticIntensity`` and ``HapticSharpness``, each 0..1), ``ParameterCurve`` and ``Parameter``
   with ``HapticIntensityControl`` (multiplies the intensity, 0..1) and
   ``HapticSharpnessControl`` (adds to the sharpness, -1..1). A curve is straight between its
-  control points and holds its last value until the next curve or parameter of its kind.
+  control points and holds its last value until the next curve or parameter of its kind, which
+  takes over from its start even before the curve has ended.
 * ``.haptic`` (JSON, Meta's open format, version 1): ``signals.continuous.envelopes`` with
   ``amplitude`` breakpoints (``time``, ``amplitude`` 0..1, optional ``emphasis`` with
   ``amplitude`` and ``frequency`` 0..1: a transient there) and ``frequency`` breakpoints
