@@ -33,6 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from .errors import PatternError
+from .schema import SIGNAL
+
+#: breakpoints a signal may have: an event with more cannot be played as one
+MAX_POINTS = SIGNAL.keys["times"].max_items
 
 FORMATS = (".ahap", ".haptic")
 #: Example patterns shipped with rtctl, played by file name (``rtctl play heartbeat.ahap ...``).
@@ -445,6 +449,11 @@ def to_stimulus(pat: Pattern, mapping, closed: bool, fs: float, max_voltage: flo
     for i, (t0, times, levels, ftimes, fvals) in enumerate(pat.continuous):
         n = f"c{i}"
         f = hz(fvals)
+        chirp = np.ptp(f) > 0.0 and not closed
+        points = max(len(times), len(ftimes) if chirp else 0)
+        if points > MAX_POINTS:  # said here: the signal's own limit would name a signal the user never wrote
+            raise PatternError(f"{pat.source}: {pat.continuous_from[i]} (at {t0:g} s) has {points} breakpoints "
+                               f"with the control points within it; an event plays at most {MAX_POINTS}")
         if np.ptp(f) == 0.0 or closed:
             if np.ptp(f) > 0.0:
                 pat.warn(f"event {i} at {t0:g} s: closed loop holds it at {f[0]:.4g} Hz (its sharpness or "

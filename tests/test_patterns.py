@@ -231,3 +231,10 @@ def test_a_band_outside_the_playable_frequencies_names_stimulus_pattern_band(cap
     code, _, err = run_cli(capsys, "play", "heartbeat.ahap", "--scene", "line-bimorph-5",
                            f"--set=stimulus.pattern.band={band}")
     assert code == 2 and ("stimulus.pattern.band" in err) and "signals" not in err, err
+
+
+def test_an_event_with_more_breakpoints_than_a_signal_holds_is_refused_naming_it(tmp_path):
+    pts = [(i * 1e-4, float(i % 2)) for i in range(12000)]
+    f = _write(tmp_path, "many.ahap", _ahap_continuous((0.0, pts)))
+    with pytest.raises(PatternError, match=r"many.ahap: Pattern\[0\].Event \(at 0 s\) has 12001 breakpoints"):
+        pattern_scene(f, "line-bimorph-5")
