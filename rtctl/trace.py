@@ -17,6 +17,13 @@ whose checksums hold, in order, and ignores the rest: a torn tail (records or an
 process was killed while writing) or anything after a chunk that fails its checksum. It says
 what it recovered (:meth:`TraceReader.recovery`).
 
+A write that fails (a full disk, a quota, an I/O error) ends the trace there: the writer raises
+:class:`TraceWriteError` and writes nothing more; :meth:`TraceWriter.close` then cuts the files
+back to their last whole chunk and closes the trace with ``write_error`` saying why it ends
+early. A full disk would leave no room for that last ``trace.json``, so the writer holds a
+reserve (a file of zeros it deletes on close, :data:`RESERVE`) for it and for the run's other
+small files.
+
 A paced run hands whole records over from its loop thread (:mod:`rtctl.engine.ring`) and they are
 appended as they are (:meth:`TraceWriter.append`); a record the loop had to drop (its ring full)
 is written as a placeholder (:meth:`TraceWriter.gap`: NaN data, status ``TRACE_DROPPED``), and
@@ -33,6 +40,7 @@ is written as a placeholder (:meth:`TraceWriter.gap`: NaN data, status ``TRACE_D
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import time
@@ -41,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import TraceError
+from .errors import OutputError, TraceError
 
 HEADER_FIELDS = [("block", "<i8"), ("status", "<i4"), ("compute_us", "<f4")]
 #: The format this writer writes, and every format the reader reads (1: no checksums).
@@ -51,6 +59,15 @@ FORMATS = ("rtctl-trace-1", FORMAT)
 CHUNK = np.dtype([("first", "<u8"), ("n", "<u4"), ("crc", "<u4")])
 #: Longest time records wait in the writer's buffer before an append, s.
 FLUSH_S = 0.02
+#: The reserve's file in a trace directory while a writer has it open.
+RESERVE = "reserve.bin"
+#: Bytes the reserve holds beyond room for ``trace.json`` (a caller adds its own files' needs).
+RESERVE_BYTES = 64 << 10
+
+
+class TraceWriteError(OutputError):
+    """The trace's files cannot be written (disk full, quota, I/O error): names the cause, the
+    file and how much of the trace was written."""
 
 
 class TraceMissing(TraceError, FileNotFoundError):
@@ -64,10 +81,37 @@ def _write_all(fd: int, data) -> None:
 
 
 def _replace_json(path: Path, doc: dict) -> None:
-    """Write ``doc`` to ``path`` whole: a temporary file renamed over it."""
+    """Write ``doc`` to ``path`` whole: a temporary file renamed over it (removed if it cannot
+    be written whole: a full disk must not leave a half or empty one behind)."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=1))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(doc, indent=1))
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def record_fields(signals: dict, block: int) -> tuple[list, list]:
+    """The record fields of a trace of ``signals`` (as :class:`TraceWriter` takes them; numpy's
+    list form) and the names of its per-block signals. ``np.dtype(fields).itemsize`` is the bytes
+    the trace grows by per block."""
+    fields = list(HEADER_FIELDS)
+    per_block = []
+    for name, spec in signals.items():
+        rows = spec[1]
+        if len(spec) > 2 and spec[2] == 0:
+            fields.append((name, "<f4", (rows,)))
+            per_block.append(name)
+        else:
+            fields.append((name, "<f4", (rows, block)))
+    return fields, per_block
+
+
+def why_failed(e: OSError) -> str:
+    """An OSError's cause in words, lower case ("no space left on device")."""
+    text = e.strerror or (errno.errorcode.get(e.errno) if e.errno else None) or str(e) or type(e).__name__
+    return text[:1].lower() + text[1:]
 
 
 class TraceWriter:
@@ -90,21 +134,19 @@ class TraceWriter:
         Stored as ``meta`` in ``trace.json`` (what made the trace: scene, versions, ...).
     flush_s : float
         Longest time a record waits in the buffer (checked when a record is added).
+    reserve : int
+        Bytes held in :data:`RESERVE` beyond room for the closing ``trace.json``, freed on close
+        for the caller's own files (a run's summary and plot).
+
+    Once a write fails, :attr:`error` holds the OSError and every later write raises
+    :class:`TraceWriteError` again; nothing more is written before :meth:`close`.
     """
 
     def __init__(self, path, signals: dict, fs: float, block: int, channels, chunk: int = 64,
-                 meta: dict | None = None, flush_s: float = FLUSH_S):
+                 meta: dict | None = None, flush_s: float = FLUSH_S, reserve: int = RESERVE_BYTES):
         self.path = Path(path)
         self.path.mkdir(parents=True, exist_ok=True)
-        fields = list(HEADER_FIELDS)
-        per_block = []
-        for name, spec in signals.items():
-            rows = spec[1]
-            if len(spec) > 2 and spec[2] == 0:
-                fields.append((name, "<f4", (rows,)))
-                per_block.append(name)
-            else:
-                fields.append((name, "<f4", (rows, block)))
+        fields, per_block = record_fields(signals, block)
         self.dtype = np.dtype(fields)
         self._buf = np.zeros(chunk, dtype=self.dtype)
         self._n = 0
@@ -113,6 +155,10 @@ class TraceWriter:
         self.flush_s = float(flush_s)
         self._last = time.monotonic()
         self._gap = None
+        #: the OSError that ended the trace early (None: every write went through)
+        self.error = None
+        self._error_file = None
+        self._entries = 0  # entries in chunks.bin
         self._layout = {
             "format": FORMAT,
             "dtype": [list(f) if len(f) == 2 else [f[0], f[1], list(f[2])] for f in fields],
@@ -124,18 +170,55 @@ class TraceWriter:
             "meta": meta or {},
             "dropped_records": 0,
         }
-        for name in ("blocks.bin", "chunks.bin"):  # an earlier trace's files: gone before the new layout
+        for name in ("blocks.bin", "chunks.bin", RESERVE):  # an earlier trace's files: gone before the new layout
             (self.path / name).unlink(missing_ok=True)
-        _replace_json(self.path / "trace.json", self._layout)
+        try:
+            _replace_json(self.path / "trace.json", self._layout)
+            # room for the closing trace.json (a little longer than this one) and the caller's files
+            self._reserve(len(json.dumps(self._layout, indent=1)) + 4096 + int(reserve))
+        except OSError as e:
+            (self.path / RESERVE).unlink(missing_ok=True)
+            raise TraceWriteError(f"{why_failed(e)} writing {self.path}: the trace cannot be started") from None
         flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0)
         self._data = os.open(self.path / "blocks.bin", flags, 0o644)
         self._index = os.open(self.path / "chunks.bin", flags, 0o644)
         self._entry = np.zeros(1, dtype=CHUNK)
         self._written = 0  # records in blocks.bin
 
+    def _reserve(self, n: int) -> None:
+        """Hold ``n`` bytes of the filesystem in :data:`RESERVE`: written out, not a sparse file,
+        so the space is taken now and is there to free when the disk is full."""
+        fd = os.open(self.path / RESERVE, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o644)
+        try:
+            _write_all(fd, bytes(n))
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
     @property
     def closed(self) -> bool:
         return self._data < 0
+
+    @property
+    def written(self) -> int:
+        """Records in the file's whole chunks (what a reader gets)."""
+        return self._written
+
+    def failure(self, of_s: float | None = None) -> str:
+        """One line on why the trace ended early or was not closed: the cause, the file, what it
+        holds (of ``of_s`` seconds, when given); '' when every write went through."""
+        secs = self._written * self._layout["block"] / self._layout["fs"]
+        of = f" of {of_s:.4g} s" if of_s is not None else ""
+        holds = f"the trace holds the first {secs:.3f} s{of} ({self._written} blocks)"
+        line = f"{why_failed(self.error)} writing {self.path / self._error_file}: {holds}" if self.error else ""
+        if self.closing_error is not None:
+            unclosed = (f"{why_failed(self.closing_error)} writing {self.path / 'trace.json'}: the trace is not "
+                        f"closed; readers recover its {self._written} blocks ({secs:.3f} s) as from a killed process")
+            line = f"{line}; {unclosed}" if line else unclosed
+        return line
+
+    def _failed(self) -> TraceWriteError:
+        return TraceWriteError(self.failure())
 
     def next(self) -> np.void:
         """The next record to fill (a view into the chunk buffer); appends the buffer first when
@@ -188,33 +271,87 @@ class TraceWriter:
         """Note when the run's clock started (CLOCK_MONOTONIC, ns; paced runs): block ``k`` was
         due ``k`` periods after it. Recorded in ``trace.json`` as ``clock_start_ns``."""
         self._layout["clock_start_ns"] = int(monotonic_ns)
-        _replace_json(self.path / "trace.json", self._layout)
+        if self.error is not None:  # recorded on close, if at all
+            return
+        try:
+            _replace_json(self.path / "trace.json", self._layout)
+        except OSError as e:
+            self.error, self._error_file = e, "trace.json"
+            raise self._failed() from None
 
     def _chunk(self, records: np.ndarray) -> None:
+        if self.error is not None:  # nothing after a failed write: the file ends at its last whole chunk
+            raise self._failed()
         records = np.ascontiguousarray(records)
         e = self._entry
         e["first"] = self._written
         e["n"] = len(records)
         e["crc"] = zlib.crc32(memoryview(records).cast("B"))
-        _write_all(self._data, records)
-        _write_all(self._index, e)  # after the records: an entry never covers bytes not yet written
+        name = "blocks.bin"
+        try:
+            _write_all(self._data, records)
+            name = "chunks.bin"
+            _write_all(self._index, e)  # after the records: an entry never covers bytes not yet written
+        except OSError as err:
+            self.error, self._error_file = err, name
+            raise self._failed() from None
         self._written += len(records)
+        self._entries += 1
         self._last = time.monotonic()
 
-    def close(self) -> None:
+    def close(self, check: bool = True) -> None:
+        """Append what is buffered, fsync, free the reserve and write the closing ``trace.json``.
+
+        After a failed write (or one failing here) the files are cut back to their whole chunks
+        and ``trace.json`` says why the trace ends early (``write_error``); then, with ``check``,
+        :class:`TraceWriteError` is raised (:meth:`failure`'s line); without, the caller reads
+        :attr:`error`. A ``trace.json`` that cannot be written even then is said in that line.
+        """
         if self._data < 0:
             return
         try:
-            self.flush()
-            os.fsync(self._data)
-            os.fsync(self._index)
+            if self.error is None:
+                try:
+                    self.flush()
+                    self._error_file = "blocks.bin"
+                    os.fsync(self._data)
+                    self._error_file = "chunks.bin"
+                    os.fsync(self._index)
+                except TraceWriteError:
+                    pass
+                except OSError as e:
+                    self.error = e
+            if self.error is not None:
+                self._cut()
         finally:
             os.close(self._data)
             os.close(self._index)
             self._data = self._index = -1
+            (self.path / RESERVE).unlink(missing_ok=True)
         self._layout["dropped_records"] = self.dropped
         self._layout["closed"] = True
-        _replace_json(self.path / "trace.json", self._layout)
+        if self.error is not None:  # why the records end early; the index says how many there are
+            self._layout["write_error"] = f"{why_failed(self.error)} writing {self._error_file}"
+        try:
+            _replace_json(self.path / "trace.json", self._layout)
+        except OSError as e:
+            self.closing_error = e
+        if check and (self.error is not None or self.closing_error is not None):
+            raise TraceWriteError(self.failure())
+
+    #: the OSError that kept the closing ``trace.json`` from being written (None: it was)
+    closing_error = None
+
+    def _cut(self) -> None:
+        """Cut both files back to the whole chunks written (a failed write may have left part of
+        one): what a reader keeps anyway, without the torn bytes taking room."""
+        sizes = ((self._data, self._written * self.dtype.itemsize), (self._index, self._entries * CHUNK.itemsize))
+        for fd, size in sizes:
+            try:
+                os.ftruncate(fd, size)
+                os.fsync(fd)
+            except OSError:  # the reader ignores a torn tail: cutting it is tidiness
+                pass
 
     def __enter__(self):
         return self
@@ -308,6 +445,9 @@ class TraceReader:
                     f"{self.torn_bytes} bytes after it are left out")
         if not self.checksummed:
             return f"{head} (format {self.format}: no checksums)"
+        ended = self.layout.get("write_error")
+        if self.closed and not self.torn_bytes and isinstance(ended, str):
+            return f"{head}, closed by its writer early ({ended}), every chunk's checksum holds"
         if self.closed and not self.torn_bytes:
             return f"{head}, closed by its writer, every chunk's checksum holds"
         torn = f"; a torn tail of {self.torn_bytes} bytes ignored" if self.torn_bytes else ""
