@@ -11,6 +11,10 @@ the drain thread. Backends ``sim`` (paced with ``--realtime``), ``serial`` (alwa
 
 A real-time run (paced, or clocked by its device) never waits for the drain: a full ring drops
 the record and counts it. A simulation run as fast as it goes waits for room instead.
+
+A trace that cannot be written (a full disk, an I/O error) ends the run like a fault: the drain
+stops writing and the loop thread, between runs of blocks, sees its error and fades the outputs
+to zero over one block. The trace keeps what was written (:class:`rtctl.trace.TraceWriter`).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import numpy as np
 from .. import safety
 from .._codegen import fence
 from .._numba import kernel
-from ..trace import FLUSH_S
+from ..trace import FLUSH_S, TraceWriteError
 from . import pace, realtime
 from .chunk import FAULT, ROOM, BlockRuns
 from .pace import settle
@@ -70,6 +74,10 @@ class LoopResult:
     dropped: int = 0
     os: dict = field(default_factory=dict)
     cpu: float = 0.0  # CPU time of the loop's thread over the run's blocks, s
+    #: the trace's write failure (:meth:`rtctl.trace.TraceWriter.failure`), '' when it had none
+    trace_error: str = ""
+    #: whether that failure ended the run (it faded the outputs as a fault does); else it came after
+    trace_stopped: bool = False
 
 
 def _compile() -> None:
@@ -186,6 +194,8 @@ class Loop:
         if ring is not None:
             args = ring.args
         status_seen, k, run_blocks, interrupted = 0, 0, n_blocks, False
+        drain = self.drain
+        trace_stopped = False  # the trace could not be written: the run ends as on a fault
         wait, mark, strict = pace.wait, pace.mark, self.strict
         advance, apply_schedule = rig.advance, rig.apply_schedule
         runs = self.runs
@@ -210,7 +220,10 @@ class Loop:
                     self._room()
                     if not self.drain.is_alive():  # its error is raised after the run; go on dropping
                         runs = self.runs = None
-            while runs is None and k < n_blocks:
+                if drain is not None and drain.error is not None:  # seen within a slice of blocks
+                    trace_stopped, run_blocks = True, k
+                    break
+            while runs is None and k < n_blocks and not trace_stopped:
                 if k > scheduled:
                     apply_schedule(k)
                     scheduled = k
@@ -235,6 +248,9 @@ class Loop:
                     faults.append(fault_message(rig, k, status, rig.block / rig.fs))
                     run_blocks = k
                     break
+                if drain is not None and drain.error is not None:
+                    trace_stopped, run_blocks = True, k
+                    break
         except KeyboardInterrupt:
             interrupted = True
             if runs is not None:  # what the compiled runs did, even if Ctrl-C cut off their return
@@ -245,21 +261,23 @@ class Loop:
             wall = (pace.now_ns(st) - st[pace.START]) * 1e-9 if st[pace.START] else 0.0
             cpu = time.thread_time() - cpu0
             try:
-                k = self._fade(st, k, times, lates, missed, requested=not faults, faults=faults)
+                k = self._fade(st, k, times, lates, missed, requested=not (faults or trace_stopped), faults=faults)
             finally:
                 session.restore()
                 if self.drain is not None:
                     self.drain.stop(k)
                 self.bar.close()
                 if self.writer is not None:
-                    self.writer.close()
+                    self.writer.close(check=False)  # a write failure is this run's to report, below
                 if rig.device is not None:
                     rig.device.close()
-        if self.drain is not None and self.drain.error is not None:
-            raise self.drain.error
+        if self.drain is not None and self.drain.error is not None and not isinstance(self.drain.error,
+                                                                                      TraceWriteError):
+            raise self.drain.error  # not the file's: a bug in the drain
+        trace_error = self.writer.failure(n_blocks * self.period_ns * 1e-9) if self.writer is not None else ""
         return LoopResult(run_blocks, status_seen, interrupted, wall, int(st[pace.LATE_WAKEUPS]),
                           int(st[pace.OVERRUNS]), self.ring.dropped if self.ring is not None else 0,
-                          session.summary(), cpu)
+                          session.summary(), cpu, trace_error, trace_stopped)
 
     def _fade(self, st, k, times, lates, missed, requested: bool, faults=None) -> int:
         """Whatever ended the run, fade every output to zero, paced like the run, recording the

@@ -8,12 +8,18 @@ blocks and nothing else: the trace and the progress bar are another thread's). O
 output fades to zero over one block before the run ends; at the run's end or on Ctrl-C under a
 raised cosine over ``timing.stop_fade``, and the trace runs on at 0 V until the model's tips
 have settled (:mod:`rtctl.engine.settle`). The trace keeps every finished block.
+
+A trace that cannot be written (a full disk, a quota, an I/O error) ends the run as a fault does;
+the trace keeps what was written and says why it ends early, and the summary's ``faults`` name
+the cause, the file and how much the trace holds. A run whose trace would not fit on the output's
+filesystem (its estimate against the free space) is refused before it starts.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -106,7 +112,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     device are put back to rest and run again, nothing rebuilt.
     """
     from ..outpath import writable_dir
-    from ..trace import TraceReader, TraceWriter
+    from ..trace import TraceReader, TraceWriter, why_failed
     from ..validity import check as model_validity
     from .rig import build
 
@@ -148,11 +154,14 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     writer = None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        _remove_earlier_run(out)
         signals = rig.trace_signals()
         if paced and not dev.callback:
             signals[LATE_FIELD] = ("us", 1, 0)
-        writer = TraceWriter(out / "trace", signals, fs, block, rig.channel_names, meta=trace_meta(scene, rig))
+        meta = trace_meta(scene, rig)
+        # before anything of an earlier run is removed: a refused run leaves it as it was
+        check_space(out, signals, rig, n_blocks, meta)
+        _remove_earlier_run(out)
+        writer = TraceWriter(out / "trace", signals, fs, block, rig.channel_names, meta=meta, reserve=RUN_RESERVE)
     times = np.zeros(n_blocks)
     lates = np.zeros(n_blocks)
     missed = np.zeros(n_blocks, dtype=np.bool_)
@@ -162,16 +171,19 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     timing = {}
     if dev.callback:
         t_start = time.perf_counter()
-        run_blocks, status_seen, interrupted = _run_callback(rig, writer, n_blocks, times, faults, bar)
+        run_blocks, status_seen, interrupted, trace_stopped = _run_callback(rig, writer, n_blocks, times, faults, bar)
         wall = time.perf_counter() - t_start
+        trace_error = ""
         if writer is not None:
-            writer.close()
+            writer.close(check=False)  # a write failure is reported below, with the run's summary
+            trace_error = writer.failure(n_blocks * period)
         dev.close()
         misses = int(dev.stats().get("late_blocks", 0))
     else:
         loop = Loop(rig, writer, bar, paced, strict, realtime, scene.timing)
         res = loop.run(n_blocks, times, lates, missed, faults)
         run_blocks, status_seen, interrupted, wall = res.blocks, res.status_seen, res.interrupted, res.wall
+        trace_error, trace_stopped = res.trace_error, res.trace_stopped
         misses = res.late_wakeups + res.overruns
         # on a machine shared with other processes the wall clock measures them too
         cpu_rtf = run_blocks * block / fs / res.cpu if res.cpu > 0 else math.inf
@@ -181,6 +193,12 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
             timing.update(wake_stats(lates[:run_blocks], missed[:run_blocks]))
         if res.os:
             timing["realtime"] = res.os
+    # the outputs faded as on a fault (an audio device fades any stop this thread asks for smoothly)
+    faulted = bool(faults) or (trace_stopped and not dev.callback)
+    if trace_error:
+        # as a fault's line: when it ended the run, at the block it did; else it came with the close
+        faults.append(f"at {run_blocks * period:.4f} s: {trace_error}; outputs faded to 0 V" if trace_stopped
+                      else f"{trace_error} (after the run's end)")
     bt = times[:run_blocks] if run_blocks else np.zeros(1)
     summary = {
         "scene": scene.scene.name,
@@ -202,10 +220,10 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         "interrupted": interrupted,
         # how the outputs went to 0 V: a fault over one block, a requested stop under a raised
         # cosine and then 0 V while the model's tips settle (rtctl.engine.settle)
-        "stop": {"by": "fault" if faults else ("interrupt" if interrupted else "end"),
-                 "fade": "linear" if faults else "raised cosine",
-                 "fade_s": (block if faults else rig.stop_fade) / fs,
-                 "settle_s": 0.0 if faults else rig.settle_blocks * period},
+        "stop": {"by": "fault" if faulted or trace_stopped else ("interrupt" if interrupted else "end"),
+                 "fade": "linear" if faulted else "raised cosine",
+                 "fade_s": (block if faulted else rig.stop_fade) / fs,
+                 "settle_s": 0.0 if faulted else rig.settle_blocks * period},
         # the scene's events, at the block they took effect in
         "events": [{"at": ev.at, "t_s": ev.block * period, "block": ev.block, "set": dict(ev.sets)}
                    for ev in rig.events if ev.block < run_blocks],
@@ -221,14 +239,80 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
         from .report import channel_rows
 
         reader = TraceReader(out / "trace", verify=False)  # just written and closed here: its counts suffice
+        if trace_error:
+            summary["trace"] = {"blocks": reader.n_blocks, "duration_s": reader.n_blocks * period,
+                                "closed": reader.closed, "error": trace_error}
+        # the report reads the blocks the trace holds (all of the run's, unless a write failed)
+        reported = min(run_blocks, reader.n_blocks)
         if report:
-            summary["channels"] = channel_rows(rig, reader, run_blocks)
-        (out / "summary.json").write_text(json.dumps(summary, indent=1))
-        if plot and report and run_blocks:
+            summary["channels"] = channel_rows(rig, reader, reported)
+        _write_summary(out, summary, trace_error)
+        if plot and report and reported:
             from .report import plot as make_plot
 
-            make_plot(summary, reader, out / "plot.png", run_blocks)
+            try:
+                make_plot(summary, reader, out / "plot.png", reported)
+            except OSError as e:  # a full disk: the run's results are in the summary already
+                (out / "plot.png").unlink(missing_ok=True)
+                summary["warnings"].append(f"plot.png not written: {why_failed(e)}")
+                _write_summary(out, summary, trace_error)
     return RunResult(summary, interrupted, out)
+
+
+def _write_summary(out: Path, summary: dict, trace_error: str) -> None:
+    """Write ``summary.json`` whole; one that cannot be written is an OutputError naming why (and
+    what the trace holds when it failed too), not a half file."""
+    from ..errors import OutputError
+    from ..trace import why_failed
+
+    p = out / "summary.json"
+    try:
+        p.write_text(json.dumps(summary, indent=1))
+    except OSError as e:
+        p.unlink(missing_ok=True)
+        raise OutputError(f"{why_failed(e)} writing {p}: the run's summary is not written"
+                          + (f"; {trace_error}" if trace_error else "")) from None
+
+
+#: Bytes a run's trace holds back while it is written (freed on close): room for summary.json
+#: and plot.png (about 250 kB) when the trace has filled the disk.
+RUN_RESERVE = 512 << 10
+
+
+def check_space(out: Path, signals: dict, rig, n_blocks: int, meta: dict) -> None:
+    """Refuse a run whose trace would not fit on ``out``'s filesystem: its records (bytes per
+    block from the trace signals, times the run's blocks with the stop's fade and settling), an
+    index entry per block at most, its ``trace.json`` and :data:`RUN_RESERVE`, against the free
+    space plus what the earlier run's files there (replaced) hold. An estimate made before
+    anything runs; a disk filled during the run still ends it as a fault."""
+    from ..errors import OutputError
+    from ..trace import CHUNK, RESERVE, record_fields
+
+    itemsize = np.dtype(record_fields(signals, rig.block)[0]).itemsize
+    blocks = n_blocks + math.ceil(rig.stop_fade / rig.block) + rig.settle_blocks + 1
+    need = blocks * (itemsize + CHUNK.itemsize) + 2 * len(json.dumps(meta, indent=1)) + RUN_RESERVE
+    try:
+        free = shutil.disk_usage(out).free
+    except OSError:  # no figure to check against: the run's own writes will say
+        return
+    for name in ("trace/blocks.bin", "trace/chunks.bin", f"trace/{RESERVE}", *RUN_FILES):
+        try:
+            free += (out / name).stat().st_size
+        except OSError:
+            pass
+    if need > free:
+        secs = n_blocks * rig.block / rig.fs
+        raise OutputError(f"--out {out}: this run's trace needs about {_size(need)} ({secs:g} s: {blocks} blocks "
+                          f"of {itemsize} bytes) but its filesystem has {_size(free)} free; shorten the run "
+                          f"(--duration, timing.duration) or give --out a filesystem with room")
+
+
+def _size(n: int) -> str:
+    """Bytes in decimal units, three figures ("5.92 GB")."""
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{n} bytes"
 
 
 def trace_meta(scene, rig) -> dict:
@@ -278,17 +362,26 @@ def _remove_earlier_run(out: Path) -> None:
 def _run_callback(rig, writer, n_blocks, times, faults, bar):
     """The device's thread runs the block step; this thread writes the trace from its snapshot
     ring and schedules parameter changes (they land one or two blocks after their block, as the
-    device runs ahead). Returns ``(blocks run, status seen, interrupted)``."""
+    device runs ahead). Returns ``(blocks run, status seen, interrupted, whether a trace write
+    failure ended the run)``."""
+    from ..trace import TraceWriteError
+
     dev = rig.device
     period = rig.block / rig.fs
-    st = {"run": n_blocks, "seen": 0, "stopping": False}
+    st = {"run": n_blocks, "seen": 0, "stopping": False, "trace": writer is not None, "trace_stopped": False}
     rig.apply_schedule(0)
 
     def on_block(k, slot):
         snaps = dev.snaps
         status = int(snaps.status[slot])
-        if writer is not None:
-            rig.record(writer.next(), status, float(snaps.compute_us[slot]), snaps, slot)
+        if st["trace"]:
+            try:
+                rig.record(writer.next(), status, float(snaps.compute_us[slot]), snaps, slot)
+            except TraceWriteError:  # the writer keeps its error for the summary; nothing more is written
+                st["trace"] = False
+                if not st["stopping"]:  # the run ends here, as on a fault
+                    st["run"], st["stopping"], st["trace_stopped"] = k + 1, True, True
+                    return True
         if st["stopping"]:
             return True
         times[k] = snaps.compute_us[slot]
@@ -319,4 +412,4 @@ def _run_callback(rig, writer, n_blocks, times, faults, bar):
     if interrupted:
         st["run"] = min(dev.snaps.done, n_blocks)
     st["seen"] |= status
-    return st["run"], st["seen"], interrupted
+    return st["run"], st["seen"], interrupted, st["trace_stopped"]
