@@ -1,0 +1,151 @@
+"""A full disk (or any failing write) under a trace: the writer keeps its whole chunks and closes
+the trace saying why it ends early; a run stops as on a fault with one line naming the cause, the
+file and what the trace holds, and still writes its summary; a run whose trace would not fit is
+refused before it starts.
+
+The disk fills at the writer's one seam to the files (``rtctl.trace._write_all``): past a budget
+of bytes in ``blocks.bin`` and ``chunks.bin`` a write puts what fits and then fails with ENOSPC,
+as a filesystem does.
+"""
+
+import errno
+import json
+import os
+import shutil
+import time
+from collections import namedtuple
+
+import numpy as np
+import pytest
+
+from rtctl import cli
+from rtctl import scene as scenes
+from rtctl import trace as tracemod
+from rtctl.engine.run import run
+from rtctl.errors import OutputError
+from rtctl.trace import TraceReader, TraceWriter
+
+
+def _fill_after(monkeypatch, budget: int, err: int = errno.ENOSPC) -> dict:
+    """Make the trace's record and index files fail after ``budget`` bytes between them; returns
+    where the monotonic time of the failure goes (``"at"``)."""
+    real = tracemod._write_all
+    left = [budget]
+    seen = {}
+
+    def write_all(fd, data):
+        name = os.path.basename(os.readlink(f"/proc/self/fd/{fd}"))
+        if name not in ("blocks.bin", "chunks.bin"):
+            return real(fd, data)
+        view = memoryview(data).cast("B")
+        if len(view) > left[0]:
+            real(fd, view[:left[0]])  # what fits, as a short write does
+            left[0] = 0
+            seen.setdefault("at", time.monotonic())
+            raise OSError(err, os.strerror(err))
+        left[0] -= len(view)
+        real(fd, view)
+
+    monkeypatch.setattr(tracemod, "_write_all", write_all)
+    return seen
+
+
+def test_a_failed_write_leaves_a_closed_trace_of_its_whole_chunks(tmp_path, monkeypatch):
+    w = TraceWriter(tmp_path, {"drive": ("V", 2)}, fs=1000.0, block=4, channels=["a", "b"], chunk=8)
+    _fill_after(monkeypatch, 2 * 8 * w.dtype.itemsize + 2 * 16 + 40)  # two whole chunks, then part of one
+    with pytest.raises(OSError, match="No space left|no space left"):
+        for k in range(100):
+            r = w.next()
+            r["drive"][:] = k
+            r["status"] = 0
+    with pytest.raises(OSError, match="no space left on device writing .*blocks.bin"):
+        w.close()
+    r = TraceReader(tmp_path)
+    assert r.closed and r.n_blocks == 16 and r.torn_bytes == 0
+    np.testing.assert_array_equal(r.signal("drive")[0], np.repeat(np.arange(16.0), 4))
+    assert r.layout["write_error"] == "no space left on device writing blocks.bin"
+    assert "closed by its writer early (no space left on device writing blocks.bin)" in r.recovery()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["blocks.bin", "chunks.bin", "trace.json"]
+
+
+def test_an_io_error_at_close_is_said_too(tmp_path, monkeypatch):
+    w = TraceWriter(tmp_path, {"drive": ("V", 1)}, fs=1000.0, block=4, channels=["a"])
+    for _ in range(3):
+        w.next()["status"] = 0
+    _fill_after(monkeypatch, 0, errno.EIO)
+    with pytest.raises(OSError, match="input/output error writing .*blocks.bin: the trace holds the first 0.000 s"):
+        w.close()
+    assert TraceReader(tmp_path).closed
+
+
+@pytest.mark.parametrize("realtime,block_runs", [(False, "1"), (True, "1"), (False, "0")])
+def test_a_disk_full_during_a_run_ends_it_as_a_fault(tmp_path, monkeypatch, realtime, block_runs):
+    monkeypatch.setenv("RTCTL_BLOCK_RUNS", block_runs)
+    failed = _fill_after(monkeypatch, 1_500_000)  # about 0.2 s of line-bimorph-5's 1500 blocks per second
+    real_close = TraceWriter.close
+    closed = {}
+
+    def close(self, *a, **kw):  # after the loop's fade and the drain's last pass
+        closed.setdefault("at", time.monotonic())
+        return real_close(self, *a, **kw)
+
+    monkeypatch.setattr(TraceWriter, "close", close)
+    res = run(scenes.load("line-bimorph-5", ["timing.duration=3"]), out_dir=tmp_path, realtime=realtime, plot=False)
+    s = res.summary
+    held = TraceReader(tmp_path / "trace")
+    assert held.closed and held.layout["write_error"] == "no space left on device writing blocks.bin"
+    assert 0.1 < held.n_blocks * held.block / held.fs < 0.4
+    line = f"no space left on device writing {tmp_path / 'trace' / 'blocks.bin'}: the trace holds the first "
+    assert len(s["faults"]) == 1 and line in s["faults"][0] and " of 3 s " in s["faults"][0]
+    assert s["faults"][0].endswith("outputs faded to 0 V")
+    assert s["stop"]["by"] == "fault" and s["stop"]["fade"] == "linear"
+    # promptly: the loop sees the failure within a slice of blocks (50 ms of wall time) and fades
+    # in one block, not after its 3 s; a run paced to the wall clock then ran on that much too
+    assert closed["at"] - failed["at"] < 0.5 and s["duration_s"] < 3
+    if realtime:
+        assert s["duration_s"] < held.n_blocks * held.block / held.fs + 0.2
+    assert s["trace"]["blocks"] == held.n_blocks and s["trace"]["closed"]
+    assert json.loads((tmp_path / "summary.json").read_text())["faults"] == s["faults"]
+    assert not (tmp_path / "trace" / "trace.json.tmp").exists()
+
+
+def test_the_command_line_says_it_in_one_line(tmp_path, monkeypatch, capsys):
+    _fill_after(monkeypatch, 1_500_000)
+    out = tmp_path / "r"
+    rc = cli.main(["run", "line-bimorph-5", "--duration", "1", "--out", str(out), "--no-plot", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1, err
+    assert len(err) == 1 and err[0].startswith("rtctl: fault: at ")
+    assert f"no space left on device writing {out / 'trace' / 'blocks.bin'}: the trace holds the first " in err[0]
+    assert " of 1 s " in err[0]
+
+
+def test_a_summary_that_cannot_be_written_is_said_with_the_trace(tmp_path, monkeypatch):
+    _fill_after(monkeypatch, 1_500_000)
+    real = type(tmp_path).write_text
+
+    def write_text(self, *a, **kw):
+        if self.name == "summary.json":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(type(tmp_path), "write_text", write_text)
+    with pytest.raises(OutputError, match=r"no space left on device writing .*summary.json: the run's summary is "
+                                          r"not written; no space left on device writing .*blocks.bin: the trace"):
+        run(scenes.load("line-bimorph-5", ["timing.duration=1"]), out_dir=tmp_path, plot=False)
+    assert not (tmp_path / "summary.json").exists()
+
+
+def test_a_trace_that_would_not_fit_is_refused_before_the_run(tmp_path, monkeypatch, capsys):
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(3_000_000, 0, 3_000_000))
+    (tmp_path / "summary.json").write_text("{}")  # an earlier run's: a refused run leaves it
+    rc = cli.main(["run", "line-bimorph-5", "--duration", "10", "--out", str(tmp_path), "--quiet", "--no-plot"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert err[0].startswith(f"rtctl: error: --out {tmp_path}: this run's trace needs about ")
+    assert " MB (10 s: " in err[0] and "but its filesystem has 3 MB free" in err[0]
+    assert (tmp_path / "summary.json").read_text() == "{}" and not (tmp_path / "trace").exists()
+    # one that fits runs
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**9, 0, 10**9))
+    assert run(scenes.load("line-bimorph-5", ["timing.duration=0.05"]), out_dir=tmp_path, plot=False).summary
