@@ -21,6 +21,7 @@ import pytest
 from rtctl import cli
 from rtctl import scene as scenes
 from rtctl import trace as tracemod
+from rtctl.engine import run as runmod
 from rtctl.engine.run import run
 from rtctl.errors import OutputError
 from rtctl.trace import TraceReader, TraceWriter
@@ -149,3 +150,63 @@ def test_a_trace_that_would_not_fit_is_refused_before_the_run(tmp_path, monkeypa
     # one that fits runs
     monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**9, 0, 10**9))
     assert run(scenes.load("line-bimorph-5", ["timing.duration=0.05"]), out_dir=tmp_path, plot=False).summary
+
+
+class _Snaps:
+    def __init__(self):
+        self.status = np.zeros(4, dtype=np.int64)
+        self.compute_us = np.zeros(4)
+        self.done = 0
+
+
+class _Device:
+    """A device that runs its blocks itself (the audio backend's way): ``on_block`` per block
+    until it asks to stop, then the fade's two blocks."""
+
+    def __init__(self):
+        self.snaps, self.delivered = _Snaps(), []
+
+    def run(self, rig, n_blocks, on_block):
+        for k in range(n_blocks):
+            self.delivered.append(k)
+            self.snaps.done = k + 1
+            if on_block(k, k % 4):
+                break
+        for k in range(len(self.delivered), len(self.delivered) + 2):
+            self.delivered.append(k)
+            on_block(k, k % 4)
+        return 0
+
+
+class _Rig:
+    block, fs = 4, 1000.0
+
+    def __init__(self):
+        self.device = _Device()
+
+    def apply_schedule(self, k):
+        pass
+
+    def record(self, rec, status, compute_us, snaps, slot):
+        rec["status"] = status
+        rec["drive"][:] = 1.0
+
+
+class _Bar:
+    def update(self, done):
+        pass
+
+    def close(self):
+        pass
+
+
+def test_a_device_that_runs_its_own_blocks_is_stopped_too(tmp_path, monkeypatch):
+    rig = _Rig()
+    w = TraceWriter(tmp_path, {"drive": ("V", 1)}, fs=rig.fs, block=rig.block, channels=["a"], chunk=8)
+    _fill_after(monkeypatch, 3 * 8 * w.dtype.itemsize + 3 * 16 + 5)  # the fourth chunk fails
+    faults = []
+    blocks, _, interrupted, trace_stopped = runmod._run_callback(rig, w, 1000, np.zeros(1000), faults, _Bar())
+    assert trace_stopped and not interrupted and blocks == 33 and faults == []  # the writer's line comes from run()
+    assert len(rig.device.delivered) == 35  # asked to stop at once: the fade's blocks, no more
+    w.close(check=False)
+    assert TraceReader(tmp_path).n_blocks == 24 and "holds the first 0.096 s of 1 s (24 blocks)" in w.failure(1.0)
