@@ -508,16 +508,19 @@ _EVENT_KEY = re.compile(r"finger\.(preload|contact|subject)|stimulus\.tones\.\d+
                         r"|actuator\.[^.]+\.(em|dot|solenoid)\.preload")
 
 
-def event_keys(table: Mapping, prefix: str = "") -> dict[str, Any]:
+def event_keys(table: Mapping, prefix: str = "", origin: str = "<scene>", where: str = "set") -> dict[str, Any]:
     """An event's ``set`` table as ``dotted.key -> value``: quoted keys (``"finger.preload" = 1``)
-    and nested tables (``finger.preload = 1``, ``finger = {preload = 1}``) read the same."""
+    and nested tables (``finger.preload = 1``, ``finger = {preload = 1}``) read the same. A key
+    given twice in two spellings is refused (``where``: the table's place, for the message):
+    TOML refuses a repeated key, but not a quoted one beside its nested spelling, and one of the
+    two values would be dropped without a word."""
     out: dict[str, Any] = {}
     for k, v in table.items():
         key = f"{prefix}.{k}" if prefix else str(k)
-        if isinstance(v, Mapping):
-            out.update(event_keys(v, key))
-        else:
-            out[key] = v
+        for sub, value in (event_keys(v, key, origin, where).items() if isinstance(v, Mapping) else ((key, v),)):
+            if sub in out:
+                raise _fail(origin, f"{where}.{sub}", value, f"set twice in one event (also {_show(out[sub])})")
+            out[sub] = value
     return out
 
 
@@ -549,7 +552,7 @@ def event_states(data: Mapping[str, Any], origin: str) -> list[dict[str, Any]]:
         if at >= duration:
             raise _fail(origin, f"{where}.at", at, f"after the end of the run ({duration:g} s)")
         prev = at
-        sets = event_keys(ev["set"])
+        sets = event_keys(ev["set"], origin=origin, where=f"{where}.set")
         if not sets:
             raise _fail(origin, f"{where}.set", ev["set"], "an event sets at least one key")
         for key, value in sets.items():

@@ -137,6 +137,9 @@ BAD = [
     ('set = {}', "events.0.set = {}: an event sets at least one key"),
     ('set = 3', "events.0.set = 3: must be a table"),
     ('set = { "finger.subject" = "T" }', "events.0: finger.subject = 'T' has no lateral set in finger.subjects"),
+    # (both spellings pass TOML; one value was dropped, whichever came last held)
+    ('set = { "finger.preload" = 1.0, finger = { preload = 2.0 } }',
+     "events.0.set.finger.preload = 2.0: set twice in one event (also 1.0)"),
 ]
 
 
