@@ -492,6 +492,8 @@ def _play_checks(s: dict, names: list, origin: str) -> None:
                         f"no such stimulus.spatial item (have {', '.join(spatial) or 'none'})")
         if pl["actuator"] and pl["actuator"] not in names:
             raise _fail(origin, f"{p}.actuator", pl["actuator"], f"no such actuator group (have {', '.join(names)})")
+        if pl["start"] >= s["timing"]["duration"]:  # (as a tone's: it would play nothing, silently)
+            raise _fail(origin, f"{p}.start", pl["start"], f"after the end of the run ({s['timing']['duration']:g} s)")
         if not pl["spatial"]:
             grid = s["actuator"][names.index(pl["actuator"] or names[0])]["grid"]
             if pl["channel"] >= grid[0] * grid[1]:

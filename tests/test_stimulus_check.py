@@ -72,6 +72,15 @@ def test_check_refuses_a_bad_stimulus_in_the_line_run_gives(capsys, tmp_path, ba
     assert err_c == err_r  # the same line (the run's duration is not part of any of them)
 
 
+def test_a_signal_that_starts_after_the_run_is_refused_as_a_tone_is(capsys, tmp_path):
+    """A played signal starting at 5 s of a 2 s run would play nothing, silently (a tone starting
+    there was already refused)."""
+    path = _scene_file(tmp_path, OPEN, f'signals = [{SINE}]\nplay = [{{signal = "a", channel = 2, start = 5.0}}]')
+    code, out, err = run_cli(capsys, "check", path)
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert "stimulus.play.0.start = 5.0: after the end of the run (2 s)" in err, err
+
+
 def test_check_passes_good_signals_and_the_bundled_scenes(capsys, tmp_path):
     """The check refuses only what the run refuses: a good chirp, sequence and product pass."""
     body = (f'signals = [{SINE}, {{name = "c", type = "chirp", freq = 100.0, freq_end = 200.0, duration = 0.1}}, '
