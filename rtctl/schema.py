@@ -595,7 +595,8 @@ def markdown() -> str:
         "range stops `rtctl` with exit status 2 and one line naming the key, the value and what is allowed.",
         "Override any key from the command line with `--set path.to.key=VALUE` (a TOML literal; a bare word",
         "that is not one is taken as a string). Actuator groups are addressed by name:",
-        "`--set actuator.lateral.beam.length=0.012`, list items by index: `--set stimulus.tones.0.freq=120`.",
+        "`--set actuator.lateral.beam.length=0.012`, list items by index: `--set stimulus.tones.0.freq=120` "
+        "(from the end with a negative one: `stimulus.tones.-1` is the last).",
         "",
         "`[]` marks an array of tables, `NAME` a table of named tables. SI units; amplitudes are peak.",
         "",
