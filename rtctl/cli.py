@@ -305,7 +305,8 @@ def _calibrate(args) -> int:
     from .outpath import writable_file
 
     s = _load(args)
-    target = writable_file(args.out or default_path(s), "--out")  # before the measurement, not after it
+    # before the measurement, not after it
+    target = writable_file(default_path(s) if args.out is None else args.out, "--out")
     doc = calibrate(s, run, lambda text: print(f"rtctl: {text}", file=sys.stderr))
     path = write(doc, target)
     doc["file"] = str(path)
@@ -345,13 +346,14 @@ def _play(args) -> int:
     s, warnings = pattern_scene(args.pattern, args.scene, args.overrides, args.duration)
     for w in warnings:
         print(f"rtctl: warning: {w}", file=sys.stderr)
-    out = args.out or os.path.join("out", f"{s.scene.name}-{os.path.splitext(os.path.basename(args.pattern))[0]}")
+    out = args.out if args.out is not None else os.path.join(
+        "out", f"{s.scene.name}-{os.path.splitext(os.path.basename(args.pattern))[0]}")
     return _run_scene(s, out, args)
 
 
 def _run(args) -> int:
     s = _load(args)
-    return _run_scene(s, args.out or os.path.join("out", s.scene.name), args)
+    return _run_scene(s, os.path.join("out", s.scene.name) if args.out is None else args.out, args)
 
 
 def _run_scene(s, out, args) -> int:

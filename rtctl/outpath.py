@@ -35,8 +35,8 @@ def writable_dir(path, what: str = "--out", subdirs=(), files=()) -> Path:
     ``subdirs`` and ``files`` are names the caller will write inside (``trace``, ``summary.json``):
     one of them that exists as the other kind is refused too. Returns ``Path(path)``.
     """
-    p = Path(path)
     fix = f"give {what} a directory you can write to"
+    p = _nonempty(path, what, fix)
     if p.exists() and not p.is_dir():
         raise OutputError(f"{what} {p}: is {kind_of(p)}, not a directory; {fix}")
     try:
@@ -55,8 +55,8 @@ def writable_dir(path, what: str = "--out", subdirs=(), files=()) -> Path:
 def writable_file(path, what: str = "--out") -> Path:
     """Prove ``path`` can be written as a file (its directory created, a probe written there);
     an existing ``path`` must be a regular file (it is replaced). Returns ``Path(path)``."""
-    p = Path(path)
     fix = f"give {what} a file path you can write to"
+    p = _nonempty(path, what, fix)
     if p.exists() and not p.is_file():
         raise OutputError(f"{what} {p}: is {kind_of(p)}, not a regular file; {fix}")
     parent = p.parent
@@ -68,6 +68,13 @@ def writable_file(path, what: str = "--out") -> Path:
         raise OutputError(f"{what} {p}: cannot create its directory {parent} ({_why(e)}); {fix}") from None
     _probe(parent, what, fix, shown=p)
     return p
+
+
+def _nonempty(path, what: str, fix: str) -> Path:
+    # Path("") is ".": an empty value would quietly write into the working directory
+    if isinstance(path, str) and not path.strip():
+        raise OutputError(f"{what} is empty; {fix}")
+    return Path(path)
 
 
 def _probe(d: Path, what: str, fix: str, shown: Path | None = None) -> None:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import RtctlError
+from .outpath import writable_file
 from .trace import TraceError, TraceReader
 
 FORMATS = ("npz", "csv", "wav")
@@ -25,6 +26,8 @@ CSV_PIECE = 512
 
 def open_trace(path) -> TraceReader:
     """The trace at ``path``: a trace directory, or a run's ``--out`` directory holding ``trace/``."""
+    if isinstance(path, str) and not path.strip():  # Path("") is "." and would read the working directory
+        raise TraceError("the trace path is empty (give a trace directory or a run's output directory)")
     p = Path(path)
     if not (p / "trace.json").exists() and (p / "trace" / "trace.json").exists():
         p = p / "trace"
@@ -92,10 +95,9 @@ def export(r: TraceReader, fmt: str, out=None, volts_per_fs: float | None = None
     path and one line saying what was written."""
     if fmt not in FORMATS:
         raise RtctlError(f"trace export: format {fmt!r} is not one of {', '.join(FORMATS)}")
-    out = Path(out) if out is not None else default_out(r, fmt)
     if not r.n_blocks:
         raise TraceError(f"{r.path}: no blocks to export ({r.recovery()})")
-    out.parent.mkdir(parents=True, exist_ok=True)
+    out = writable_file(out if out is not None else default_out(r, fmt), "--out")
     return out, {"npz": _npz, "csv": _csv, "wav": _wav}[fmt](r, out, volts_per_fs)
 
 

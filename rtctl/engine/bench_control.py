@@ -94,10 +94,12 @@ def main(argv=None) -> int:
     except ValueError:
         print(f"rtctl bench control: error: --blocks {a.blocks!r}: give block sizes like 16,32,64", file=sys.stderr)
         return 2
+    if a.out is not None:  # before the runs, not after them
+        from ..outpath import writable_dir
+
+        out = writable_dir(a.out, "--out", files=("control.json", "control.png"))
     res = measure(a.scene, blocks, a.duration, a.overrides)
-    if a.out:
-        out = Path(a.out)
-        out.mkdir(parents=True, exist_ok=True)
+    if a.out is not None:
         (out / "control.json").write_text(json.dumps(res, indent=1))
         plot(res, out / "control.png")
     if a.json:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -45,6 +44,7 @@ def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.
     """Everything ``rtctl selfsense`` computes, as a dict (see the module docstring)."""
     from rtctl import scene as scene_mod
     from rtctl.models import Models
+    from rtctl.outpath import writable_dir
     from rtctl.selfsense.facts import tmm_facts
     from rtctl.selfsense.plots import admittance_figure
     from rtctl.selfsense.sweep import finger_loads, run_case, sweep
@@ -52,8 +52,7 @@ def run(scene_name, overrides=(), out="out/selfsense", freqs=(10.0, 250.0, 1000.
     from rtctl.selfsense.tmm import TMMBeam
 
     sc = scene_mod.load(scene_name, list(overrides))
-    outdir = Path(out)
-    outdir.mkdir(parents=True, exist_ok=True)
+    outdir = writable_dir(out, "--out")
     models = Models(sc)
     result = {"scene": sc.scene.name, "groups": {}}
     fs = float(sc.timing.fs)

@@ -1,0 +1,57 @@
+"""Bad command-line values the commands refuse with one line and status 2: outputs that cannot be
+written, empty paths, non-finite or out-of-range numbers, paths too long to render, unreadable
+files; never a traceback, an internal error (status 3) or a quiet default."""
+
+import pytest
+from test_cli_newuser import _call
+
+
+def _refused(args, *words):
+    code, out, err = _call(args)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, (args, code, err)
+    assert "internal error" not in err and "Traceback" not in err, err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("run")
+    code, _, err = _call(["run", "line-bimorph-5", "--duration", "0.05", "--quiet", "--no-plot", "--out", str(d)])
+    assert code == 0, err
+    return d
+
+
+def test_trace_export_refuses_an_out_it_cannot_write(run_dir, tmp_path):
+    (tmp_path / "afile").write_text("x")
+    for out, words in ((tmp_path, "is a directory, not a regular file"),
+                       (tmp_path / "afile" / "x.npz", "afile is a regular file, not a directory"),
+                       ("/proc/x.npz", "cannot write in /proc"),
+                       ("", "--out is empty")):
+        _refused(["trace", "export", str(run_dir), "--out", str(out)], words, "give --out a file path")
+    assert (tmp_path / "afile").read_text() == "x"
+
+
+def test_selfsense_and_bench_control_refuse_a_file_as_out_before_they_compute(tmp_path, monkeypatch):
+    import rtctl.engine.bench_control
+
+    monkeypatch.setattr(rtctl.engine.bench_control, "measure", lambda *a, **k: pytest.fail("measured"))
+    f = tmp_path / "afile"
+    f.write_text("x")
+    _refused(["selfsense", "line-bimorph-5", "--out", str(f)], "is a regular file, not a directory")
+    _refused(["bench", "control", "--blocks", "32,32", "--out", str(f)], "is a regular file, not a directory")
+    assert f.read_text() == "x"
+
+
+@pytest.mark.parametrize("args, words", [
+    (["run", "line-bimorph-5", "--duration", "0.02", "--quiet", "--out", ""], "--out is empty"),
+    (["calibrate", "line-bimorph-5", "--out", ""], "--out is empty"),
+    (["trace", "info", ""], "the trace path is empty"),
+    (["bench", "control", "--out", ""], "--out is empty"),
+], ids=["run", "calibrate", "trace-info", "bench-control"])
+def test_an_empty_path_is_refused_not_taken_for_the_default(args, words, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _refused(args, words)
+    assert not list(tmp_path.iterdir())  # nothing written into the working directory or out/
