@@ -55,3 +55,45 @@ def test_an_empty_path_is_refused_not_taken_for_the_default(args, words, tmp_pat
     monkeypatch.chdir(tmp_path)
     _refused(args, words)
     assert not list(tmp_path.iterdir())  # nothing written into the working directory or out/
+
+
+@pytest.fixture(scope="module")
+def image(tmp_path_factory):
+    import cv2
+    import numpy as np
+
+    f = tmp_path_factory.mktemp("img") / "checker.png"
+    a = np.zeros((16, 16), np.uint8)
+    a[::4] = 255
+    cv2.imwrite(str(f), a)
+    return f
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--at", "nan,nan"], ["--at nan", "stimulus.at allows [-1e+06, 1e+06] px"]),
+    (["--at", "inf,0"], ["--at inf"]),
+    (["--rate", "1e8", "--path", "raster"], ["--rate 100000000.0", "stimulus.rate allows [1, 10000] Hz"]),
+    (["--rate", "nan", "--path", "raster"], ["--rate nan"]),
+    (["--hia", "100000"], ["--hia 100000", "stimulus.hia allows [0, 4096] px"]),
+    (["--method", "beat", "--mm-per-px", "1e300"], ["--mm-per-px 1e+300", "stimulus.px_size"]),
+    (["--path", "raster", "--speed", "1e-6"],
+     ["1.5e+10 render updates", "(1.5e+07 s at 1000 Hz)", "more than the 1000000 allowed"]),
+    (["--path", "1,1@0;2,2@1e9"], ["1e+12 render updates", "more than the 1000000 allowed"]),
+    (["--path", ""], ["--path is empty"]),
+], ids=["at-nan", "at-inf", "rate-huge", "rate-nan", "hia-huge", "mm-per-px-huge", "slow-raster", "far-time",
+        "empty-path"])
+def test_render_refuses_values_that_would_crash_or_never_end(image, args, words):
+    _refused(["render", str(image), *args], *words)
+
+
+def test_a_mouse_csv_too_long_or_not_text_is_refused_by_render_and_by_a_scene(image, tmp_path):
+    long = tmp_path / "long.csv"
+    long.write_text("t,x,y\n0,1,1\n1e12,2,2\n")
+    binary = tmp_path / "bin.csv"
+    binary.write_bytes(b"\xff\xfe,\x00\n")
+    _refused(["render", str(image), "--path", str(long)], "1e+15 render updates", "1000000 allowed")
+    _refused(["render", str(image), "--path", str(binary)], f"{binary}: not UTF-8 text", "give a CSV of t,x,y")
+    scene = ["run", "dot-4x4", "--quiet", "--no-plot", "--out", str(tmp_path / "out"), "--set", "stimulus.kind=image",
+             "--set", "stimulus.method=roi", "--set", f"stimulus.image={image}"]
+    _refused([*scene, "--set", f"stimulus.path={binary}"], f"{binary}: not UTF-8 text")
+    _refused([*scene, "--set", f"stimulus.path={long}"], "1e+15 render updates")

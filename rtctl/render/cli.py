@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 
@@ -30,11 +31,24 @@ def _pair(text, sep, kind, what):
     return a, b
 
 
+def _in_scene_range(flag: str, value, key: str, scale: float = 1.0):
+    """``value`` of ``flag``, held to the range of the scene key ``stimulus.KEY`` it stands for
+    (given in that key's unit, ``value * scale``): the same bounds as a scene's, and no NaN or
+    infinity reaching the renderer's pixel arithmetic."""
+    from rtctl.schema import SCENE
+
+    k = SCENE.keys["stimulus"].keys[key]
+    v = value * scale
+    if not (math.isfinite(v) and (v > k.lo if k.open_lo else v >= k.lo) and v <= k.hi):
+        raise SceneError(f"{flag} {value!r}: out of range; stimulus.{key} allows {k.describe_range()} {k.unit}")
+    return value
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rtctl render", description="Render an image to per-pin stimulus parameters.")
     p.add_argument("image", metavar="IMAGE", help="image file (PNG, JPEG, ...; 8-bit gray or colour)")
     p.add_argument("--method", choices=tuple(_DEFAULTS), default="frequency",
-                   help="roi | canny (binary pins, seed 001), frequency (seed 003), beat (seed 004)")
+                   help="roi | canny (binary pins, seed 001), frequency (seed 003; the default), beat (seed 004)")
     p.add_argument("--grid", type=lambda s: _pair(s, "x", int, "--grid"), metavar="RxC",
                    help="pins rows x cols (default: 4x4 roi/canny, 3x3 frequency, 6x8 beat)")
     p.add_argument("--hia", type=int, metavar="PX", help="HIA side in pixels (default 32, 33, 96)")
@@ -60,6 +74,14 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     """Run ``rtctl render``; returns 0, raises :class:`RtctlError` on bad input."""
     args = parser().parse_args(argv)
+    for x in args.at or ():
+        _in_scene_range("--at", x, "at")
+    _in_scene_range("--speed", args.speed, "speed")
+    _in_scene_range("--rate", args.rate, "rate")
+    if args.hia is not None:
+        _in_scene_range("--hia", args.hia, "hia")
+    if args.mm_per_px is not None:
+        _in_scene_range("--mm-per-px", args.mm_per_px, "px_size", 1e-3)
     from rtctl.render.factory import make_renderer
     from rtctl.render.image import load_image
 
@@ -90,7 +112,7 @@ def main(argv=None) -> int:
                    valid_blobs=int(r.valid.sum()), blobs=int(r.valid.size - 1))
     res["pins"] = r.pins(out)
     frames = None
-    if args.path:
+    if args.path is not None:
         from rtctl.render.path import parse_path
 
         path = parse_path(args.path, W, H, speed=args.speed, rate=args.rate, step=float(r.shape[0]))

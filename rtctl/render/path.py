@@ -19,7 +19,12 @@ import numpy as np
 
 from rtctl.errors import SceneError
 
-__all__ = ["Path", "raster", "through", "at_speed", "from_csv", "parse_path", "PathPlayer"]
+__all__ = ["Path", "raster", "through", "at_speed", "from_csv", "parse_path", "PathPlayer", "MAX_UPDATES"]
+
+#: Most render updates one path may take: 1000 s at 1 kHz. The arrays are allocated whole (and
+#: ``rtctl render`` keeps every update's pin parameters), so a slow raster or a far-off last time
+#: would otherwise ask for gigabytes before anything is rendered.
+MAX_UPDATES = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -51,6 +56,16 @@ def _rate(rate):
     return float(rate)
 
 
+def _updates(seconds: float, rate: float) -> int:
+    """Updates of a path ``seconds`` long at ``rate``, refused above :data:`MAX_UPDATES` (counted
+    before anything is allocated)."""
+    n = math.floor(seconds * rate + 1e-9) + 1
+    if n > MAX_UPDATES:
+        raise SceneError(f"the path takes {n:.4g} render updates ({seconds:.4g} s at {rate:g} Hz), more than the "
+                         f"{MAX_UPDATES} allowed; lower the render rate or shorten the path (or raise its speed)")
+    return int(n)
+
+
 def through(points, times, rate=1000.0) -> Path:
     """Piecewise-linear path through way-points, sampled at ``rate``.
 
@@ -78,7 +93,7 @@ def through(points, times, rate=1000.0) -> Path:
         raise SceneError("path points and times must be finite")
     if np.any(np.diff(tt) <= 0.0):
         raise SceneError("path times must be strictly increasing")
-    n = int(math.floor((tt[-1] - tt[0]) * rate + 1e-9)) + 1
+    n = _updates(tt[-1] - tt[0], rate)
     t = tt[0] + np.arange(n) / rate
     return Path(t, np.interp(t, tt, pts[:, 0]), np.interp(t, tt, pts[:, 1]), rate)
 
@@ -150,7 +165,7 @@ def raster(width, height, speed, rate=1000.0, step=33.0) -> Path:
     vx, vy = np.array(vx), np.array(vy)
     s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(vx), np.diff(vy)))])
     t_end = s[-1] / speed
-    n = int(math.floor(t_end * rate + 1e-9)) + 1
+    n = _updates(t_end, rate)
     t = np.arange(n) / rate
     d = np.minimum(t * speed, s[-1])
     return Path(t, np.interp(d, s, vx), np.interp(d, s, vy), rate)
@@ -169,6 +184,9 @@ def from_csv(file, rate=1000.0, speed=None) -> Path:
             lines = [ln.strip() for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
     except OSError as e:
         raise SceneError(f"{file}: cannot read the mouse path ({e.strerror}); give a CSV of t,x,y") from None
+    except UnicodeDecodeError as e:
+        raise SceneError(f"{file}: not UTF-8 text (a byte {e.object[e.start]:#04x}); give a CSV of t,x,y "
+                         "rows") from None
     if not lines:
         raise SceneError(f"{file}: empty mouse path; give a CSV of t,x,y rows")
     cols = (0, 1, 2)
@@ -223,6 +241,8 @@ def parse_path(spec: str, width: int, height: int, *, speed: float = 200.0, rate
     [10.0, 12.0, 14.0]
     """
     text = spec.strip()
+    if not text:
+        raise SceneError("--path is empty; give 'raster', way-points X,Y;X,Y, or a CSV file")
     if text.lower() == "raster":
         return raster(width, height, speed, rate, step)
     if ";" in text or _is_point(text):
