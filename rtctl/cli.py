@@ -109,7 +109,7 @@ def _parser() -> argparse.ArgumentParser:
           "rtctl.check:main")
     _tool(sub, "selfsense", "transfer-matrix admittance plots and the observer accuracy sweep (SCENE ...)",
           "rtctl.selfsense.cli:main")
-    _tool(sub, "render", "render an image to per-pin parameters (IMAGE --method ...)", "rtctl.render.cli:main")
+    _tool(sub, "render", "render an image to per-pin parameters (IMAGE [--method ...])", "rtctl.render.cli:main")
     _tool(sub, "sweep", "design sweep on Dask: model, reach, selfsense or run over the product of --vary values "
           "(SCENE --vary KEY=SPEC ...)", "rtctl.cli:_sweep_main")
     _tool(sub, "replay", "replay a trace: re-run and compare bit by bit (resim), the recorded drive into the "
