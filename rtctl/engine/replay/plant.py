@@ -25,6 +25,7 @@ Where the trace holds the true tip (a simulated recording), the simulated tip is
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -87,7 +88,8 @@ def residuals(rec, sim, fs, block, names):
     s = sim.transpose(1, 0, 2).reshape(rows, -1).astype(float)
     bad = ~np.isfinite(r)
     r[bad], s[bad] = 0.0, 0.0
-    w = max(block, int(round(WINDOW_S * fs / block)) * block)
+    # a comparison shorter than one window (a short trace, a late --skip) is one shorter window
+    w = min(max(block, int(round(WINDOW_S * fs / block)) * block), r.shape[1])
     nw = max(1, r.shape[1] // w)
     hr, hs = hilbert(r, axis=1), hilbert(s, axis=1)
     rr = (r[:, : nw * w] ** 2).reshape(rows, nw, w).sum(axis=2)
@@ -122,10 +124,12 @@ def replay_plant(reader, out: Path, overrides=(), skip_s: float = 0.0) -> dict:
         raise TraceError(f"{reader.path}: the trace has {rec.shape[1]} sensed rows, the scene's plant {sim.shape[1]}")
     recorded_lag = int(reader.meta.get("latency_blocks") or 1)
     lag = _best_lag(rec, sim, recorded_lag)
-    k0 = min(int(round(skip_s * reader.fs / reader.block)), len(rec) - lag - 1)
-    if skip_s < 0 or k0 < 0:
-        raise TraceError(f"--skip {skip_s:g}: must be >= 0 and shorter than the trace")
     n = len(rec) - lag
+    # NaN, infinity or a skip past the end: refused, not clamped to the last block
+    k0 = int(round(skip_s * reader.fs / reader.block)) if math.isfinite(skip_s) and skip_s >= 0 else -1
+    if not 0 <= k0 < n:
+        raise TraceError(f"--skip {skip_s:g}: must be >= 0 and shorter than the "
+                         f"{n * reader.block / reader.fs:g} s of the trace compared")
     res = residuals(rec[lag + k0:], sim[k0:n], reader.fs, reader.block, names)
     res["t_s"] = res["t_s"] + k0 * reader.block / reader.fs
     rep = {"mode": "plant", "blocks": n - k0, "skip_s": k0 * reader.block / reader.fs,
@@ -146,13 +150,17 @@ def replay_plant(reader, out: Path, overrides=(), skip_s: float = 0.0) -> dict:
     rep["out"] = str(out)
     (out / "replay.json").write_text(json.dumps(rep, indent=1))
     rep["details"] = [f"{r['row']:<24} residual {r['residual_pct']:8.3f} %  phase {r['phase_deg']:+7.2f} deg  "
-                      f"gain {r['gain']:.4f}" for r in res["rows"] if r["residual_pct"] is not None]
+                      + ("gain - (the model's are zero)" if r["gain"] is None else f"gain {r['gain']:.4f}")
+                      for r in res["rows"] if r["residual_pct"] is not None]
     return rep
 
 
 def _line(rep, worst) -> str:
     if rep["residual_pct"] is None:
         return "plant replay: the recorded currents are all zero: nothing to compare"
+    if rep["gain"] is None:
+        return (f"plant replay of {rep['blocks']} blocks: the model's currents are all zero where the recorded "
+                f"ones are not ({rep['residual_pct']:.3g} % rms residual)")
     lag = rep["latency_blocks"]
     lat = (f"latency {lag} blocks" + ("" if lag == rep["recorded_latency_blocks"] else
                                       f" (the trace says {rep['recorded_latency_blocks']})"))
