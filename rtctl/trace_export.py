@@ -143,8 +143,8 @@ def _wav(r, out, volts_per_fs):
         raise TraceError(f"{r.path}: the trace has no drive signal to export as audio")
     io = (r.meta.get("scene") or {}).get("io") or {}
     vfs = float(volts_per_fs if volts_per_fs is not None else io.get("volts_per_fs", 150.0))
-    if not vfs > 0:
-        raise RtctlError(f"trace export: volts per full scale must be > 0, not {vfs:g}")
+    if not 0 < vfs < np.inf:  # infinity would scale every sample to 0: a silent all-zero file
+        raise RtctlError(f"trace export: volts per full scale must be a finite number > 0, not {vfs:g}")
     rate = round(r.fs)
     if abs(rate - r.fs) > 1e-6 * r.fs:
         raise TraceError(f"{r.path}: sample rate {r.fs:g} Hz is not a whole number of hertz, as WAV needs")

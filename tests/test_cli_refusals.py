@@ -97,3 +97,41 @@ def test_a_mouse_csv_too_long_or_not_text_is_refused_by_render_and_by_a_scene(im
              "--set", "stimulus.method=roi", "--set", f"stimulus.image={image}"]
     _refused([*scene, "--set", f"stimulus.path={binary}"], f"{binary}: not UTF-8 text")
     _refused([*scene, "--set", f"stimulus.path={long}"], "1e+15 render updates")
+
+
+@pytest.mark.parametrize("skip", ["nan", "inf", "1e9"])
+def test_replay_refuses_a_skip_that_is_not_a_time_inside_the_trace(run_dir, tmp_path, skip):
+    _refused(["replay", str(run_dir), "--mode", "plant", "--skip", skip, "--out", str(tmp_path)],
+             f"--skip {float(skip):g}: must be >= 0 and shorter than the")
+
+
+def test_replay_compares_a_tail_shorter_than_one_window(run_dir, tmp_path):
+    import json
+
+    code, out, _ = _call(["trace", "info", str(run_dir), "--json"])
+    skip = json.loads(out)["duration_s"] - 0.05  # leaves about 0.05 s: half the 0.1 s window
+    code, out, err = _call(["replay", str(run_dir), "--mode", "plant", "--skip", f"{skip:.4f}", "--out",
+                            str(tmp_path), "--json"])
+    assert code == 0, err
+    rep = json.loads(out)
+    assert rep["window_s"] < 0.1 and rep["blocks"] >= 1
+
+
+@pytest.mark.parametrize("args, words", [
+    (["bench", "realtime", "--seconds", "nan"], ["--seconds in (0, 86400]"]),
+    (["bench", "realtime", "--seconds", "inf"], ["--seconds in (0, 86400]"]),
+    (["bench", "control", "--blocks", ""], ["--blocks ''", "give block sizes like 16,32,64"]),
+    (["selfsense", "line-bimorph-5", "--beat", "nan"], ["--beat nan: must be in [0, 20] Hz"]),
+    (["selfsense", "line-bimorph-5", "--snr", "nan"], ["--snr nan"]),
+    (["selfsense", "line-bimorph-5", "--freqs", "nan"], ["--freqs 'nan'", "finite frequencies > 0 Hz"]),
+], ids=["realtime-nan", "realtime-inf", "control-no-blocks", "selfsense-beat", "selfsense-snr", "selfsense-freqs"])
+def test_bench_and_selfsense_refuse_numbers_they_cannot_use(args, words, tmp_path):
+    if args[0] == "selfsense":
+        args = [*args, "--out", str(tmp_path)]
+    _refused(args, *words)
+
+
+def test_a_wav_at_infinite_volts_per_full_scale_is_refused_not_written_silent(run_dir, tmp_path):
+    _refused(["trace", "export", str(run_dir), "--format", "wav", "--volts-per-fs", "inf",
+              "--out", str(tmp_path / "x.wav")], "volts per full scale must be a finite number > 0, not inf")
+    assert not (tmp_path / "x.wav").exists()

@@ -91,6 +91,8 @@ def main(argv=None) -> int:
     a = _parser().parse_args(argv)
     try:
         blocks = [int(x) for x in a.blocks.split(",") if x.strip()]
+        if not blocks:  # nothing to measure: an empty table and an empty plot
+            raise ValueError
     except ValueError:
         print(f"rtctl bench control: error: --blocks {a.blocks!r}: give block sizes like 16,32,64", file=sys.stderr)
         return 2

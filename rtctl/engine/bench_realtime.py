@@ -324,8 +324,10 @@ def print_table(res: dict) -> None:
 
 def main(argv=None) -> int:
     a = _parser().parse_args(argv)
-    if a.seconds <= 0 or a.load < 0 or a.rounds < 1 or not 1 <= a.priority <= 99:
-        print("rtctl bench realtime: error: --seconds > 0, --load >= 0, --rounds >= 1 and --priority in 1..99",
+    # written so that NaN fails too; at most a day, as a scene's timing.duration
+    if not 0 < a.seconds <= 86400 or a.load < 0 or a.rounds < 1 or not 1 <= a.priority <= 99:
+        print("rtctl bench realtime: error: --seconds in (0, 86400], --load >= 0, --rounds >= 1 and --priority in "
+              "1..99",
               file=sys.stderr)
         return 2
     res = measure(a)

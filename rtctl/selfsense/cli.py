@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 import numpy as np
@@ -102,6 +103,14 @@ def main(argv=None) -> int:
     try:
         if args.truth_modes is not None and args.truth_modes < 1:
             raise RtctlError(f"--truth-modes must be >= 1, got {args.truth_modes}")
+        # each written so that NaN fails it too
+        if not freqs or not all(0 < f < math.inf for f in freqs):
+            raise RtctlError(f"--freqs {args.freqs!r}: give finite frequencies > 0 Hz, e.g. 10,250,1000")
+        if not 0 <= args.beat <= 2 * min(freqs):  # a pair's lower sine, f - beat / 2, must not go below 0 Hz
+            raise RtctlError(f"--beat {args.beat:g}: must be in [0, {2 * min(freqs):g}] Hz (twice the lowest of "
+                             "--freqs; 0: tones only)")
+        if not -math.inf < args.snr <= math.inf:
+            raise RtctlError(f"--snr {args.snr:g}: give a number of dB (inf: no noise)")
         res = run(args.scene, args.overrides, args.out, freqs, args.beat, args.snr, not args.no_mismatch,
                   args.truth_modes)
     except RtctlError as e:
