@@ -128,6 +128,11 @@ def resolve(source: str | Path) -> Path:
     q = BUNDLED_DIR / (p.name if p.suffix == ".toml" else p.name + ".toml")
     if q.is_file() and p.parent == Path("."):
         return q
+    if p.exists():  # a directory, a FIFO, ...: there, but no file to read (a bundled name goes first)
+        from .outpath import kind_of
+
+        raise SceneError(f"{source}: is {kind_of(p)}, not a scene file; give a scene .toml file or a bundled "
+                         "scene name (see `rtctl scenes`)")
     hint = difflib.get_close_matches(p.stem, bundled(), n=1)
     more = f" (did you mean {hint[0]!r}?)" if hint else f" (bundled: {', '.join(bundled())})"
     raise SceneError(f"{source}: no such scene file or bundled scene{more}")

@@ -135,3 +135,20 @@ def test_a_wav_at_infinite_volts_per_full_scale_is_refused_not_written_silent(ru
     _refused(["trace", "export", str(run_dir), "--format", "wav", "--volts-per-fs", "inf",
               "--out", str(tmp_path / "x.wav")], "volts per full scale must be a finite number > 0, not inf")
     assert not (tmp_path / "x.wav").exists()
+
+
+def test_a_directory_given_as_a_scene_is_called_a_directory(tmp_path):
+    line = _refused(["check", str(tmp_path)], f"{tmp_path}: is a directory, not a scene file")
+    assert "no such" not in line
+
+
+def test_a_gray_and_alpha_png_is_named_la_not_rgba(tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    f = tmp_path / "la.png"
+    a = np.zeros((16, 16, 2), np.uint8)
+    a[..., 1] = 255
+    Image.fromarray(a, "LA").save(f)
+    line = _refused(["render", str(f)], f"{f}: gray with an alpha channel (LA)", "8-bit gray without alpha")
+    assert "RGBA" not in line

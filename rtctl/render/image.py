@@ -77,6 +77,9 @@ def load_image(path) -> np.ndarray:
         _check_jpeg_end(p)
     if mode == "CMYK":  # OpenCV reads its four planes as if the fourth were alpha
         raise ImageError(f"{p}: CMYK colour (print separations); save it as RGB or grayscale")
+    if mode in ("LA", "La"):  # OpenCV hands gray + alpha over as four planes: it would pass for RGBA
+        raise ImageError(f"{p}: gray with an alpha channel (LA); flatten it onto a background and save it as "
+                         "8-bit gray without alpha (e.g. PIL.Image.open(f).convert('L'))")
     # IMREAD_UNCHANGED keeps 16-bit depth and the alpha channel so we can refuse them plainly
     # instead of letting OpenCV silently convert them.
     try:
