@@ -152,3 +152,15 @@ def test_a_gray_and_alpha_png_is_named_la_not_rgba(tmp_path):
     Image.fromarray(a, "LA").save(f)
     line = _refused(["render", str(f)], f"{f}: gray with an alpha channel (LA)", "8-bit gray without alpha")
     assert "RGBA" not in line
+
+
+@pytest.mark.parametrize("args, words", [
+    (["bench", "render", "--size", "0"], ["--size 0: must be in [8, 16384] px"]),
+    (["bench", "render", "--size", "1000000000"], ["--size 1000000000"]),
+    (["bench", "render", "--n", "0"], ["--n 0: must be in [4, 1000000] updates"]),
+    (["bench", "render", "--methods", "nope"], ["--methods: 'nope' not among roi, canny, frequency, beat"]),
+    (["emulate", "serial", "dot-4x4", "--settle-ms", "nan"], ["--settle-ms = nan: must be a finite number >= 0"]),
+    (["emulate", "serial", "dot-4x4", "--settle-ms", "inf"], ["--settle-ms = inf"]),
+], ids=["render-size-0", "render-size-huge", "render-n-0", "render-method", "serial-settle-nan", "serial-settle-inf"])
+def test_render_bench_and_serial_emulator_refuse_numbers_they_cannot_use(args, words):
+    _refused(args, *words)

@@ -411,6 +411,9 @@ def main(argv: list[str] | None = None) -> int:
     for name, v in (("--fs", a.fs), ("--chunk-ms", a.chunk_ms), ("--pulse-ms", a.pulse_ms)):
         if not (v > 0 and math.isfinite(v)):
             raise RtctlError(f"{name} = {v!r}: must be a positive number")
+    for name, v in (("--settle-ms", a.settle_ms), ("--stall-after", a.stall_after)):
+        if v is not None and not 0 <= v < math.inf:  # written so that NaN fails too
+            raise RtctlError(f"{name} = {v!r}: must be a finite number >= 0")
     fw = Firmware(sc, a.fs, a.chunk_ms * 1e-3, a.pulse_ms * 1e-3, max(a.settle_ms, 0.0) * 1e-3)
     fw.compile()
     scheduled, stall = scene_faults(sc)

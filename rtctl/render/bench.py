@@ -89,6 +89,18 @@ def main_bench(argv=None) -> int:
     p.add_argument("--n", type=int, default=2000, help="updates timed per method (default 2000)")
     p.add_argument("--methods", default="roi,canny,frequency,beat", help="comma-separated methods")
     args = p.parse_args(argv)
+    from rtctl.errors import SceneError
+    from rtctl.render.image import MAX_SIDE, MIN_SIDE
+
+    # the image side within what load_image accepts (0 or a billion crashed OpenCV); at least one
+    # timed baseline update per method (a quarter of --n), at most a million (minutes)
+    if not MIN_SIDE <= args.size <= MAX_SIDE:
+        raise SceneError(f"--size {args.size}: must be in [{MIN_SIDE}, {MAX_SIDE}] px")
+    if not 4 <= args.n <= 10**6:
+        raise SceneError(f"--n {args.n}: must be in [4, 1000000] updates")
+    unknown = [m for m in args.methods.split(",") if m not in HIA]
+    if unknown:
+        raise SceneError(f"--methods: {', '.join(map(repr, unknown))} not among {', '.join(HIA)}")
     image = _image(args.size)
     res = {"image_px": [args.size, args.size], "grid": list(GRID), "budget_us": 100.0, "methods": {}}
     for m in args.methods.split(","):
