@@ -50,7 +50,8 @@ def test_selfsense_and_bench_control_refuse_a_file_as_out_before_they_compute(tm
     (["calibrate", "line-bimorph-5", "--out", ""], "--out is empty"),
     (["trace", "info", ""], "the trace path is empty"),
     (["bench", "control", "--out", ""], "--out is empty"),
-], ids=["run", "calibrate", "trace-info", "bench-control"])
+    (["sweep", "line-bimorph-5", "--vary", "timing.block=[32]", "--workers", "0", "--out", ""], "--out is empty"),
+], ids=["run", "calibrate", "trace-info", "bench-control", "sweep"])
 def test_an_empty_path_is_refused_not_taken_for_the_default(args, words, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     _refused(args, words)
@@ -164,3 +165,16 @@ def test_a_gray_and_alpha_png_is_named_la_not_rgba(tmp_path):
 ], ids=["render-size-0", "render-size-huge", "render-n-0", "render-method", "serial-settle-nan", "serial-settle-inf"])
 def test_render_bench_and_serial_emulator_refuse_numbers_they_cannot_use(args, words):
     _refused(args, *words)
+
+
+def test_render_replay_and_sweep_refuse_an_out_they_cannot_write(run_dir, image, tmp_path, monkeypatch):
+    f = tmp_path / "afile"
+    f.write_text("x")
+    for args in (["replay", str(run_dir), "--mode", "plant"],
+                 ["sweep", "line-bimorph-5", "--vary", "timing.block=[32]", "--workers", "0"]):
+        _refused([*args, "--out", str(f)], f"--out {f}: is a regular file, not a directory")
+    assert f.read_text() == "x"
+    monkeypatch.chdir(tmp_path)
+    for args in (["render", str(image)], ["replay", str(run_dir), "--mode", "plant"]):
+        _refused([*args, "--out", ""], "--out is empty")
+    assert [p.name for p in tmp_path.iterdir()] == ["afile"]

@@ -86,7 +86,7 @@ def main(argv=None) -> int:
     from rtctl.render.image import load_image
 
     image = load_image(args.image)
-    if args.out:
+    if args.out is not None:  # an empty --out is refused there, not skipped
         from rtctl.outpath import writable_dir
 
         writable_dir(args.out, "--out")
@@ -120,7 +120,7 @@ def main(argv=None) -> int:
         res["path"] = {"spec": args.path, "updates": len(path), "rate_hz": path.rate,
                        "duration_s": float(path.t[-1] - path.t[0]),
                        "start": [float(path.x[0]), float(path.y[0])], "end": [float(path.x[-1]), float(path.y[-1])]}
-    if args.out:
+    if args.out is not None:
         res["files"] = _write(args.out, r, image, x, y, out, frames)
     if args.json:
         print(json.dumps(res))

@@ -102,6 +102,9 @@ def sweep(source, vary, what="model", sets=(), out=None, scheduler=None, workers
         from .. import scene as scene_mod
 
         out = Path("out") / f"{scene_mod.loads(text, list(sets), origin).scene.name}-sweep"
+    from ..outpath import writable_dir
+
+    out = writable_dir(out, "--out")  # a file in the way or /proc: said before the first point, not after
     store = results.Store(out, results.identity(text, origin, sets, whats))
     records = {p.index: store.previous[p.overrides] for p in pts if p.overrides in store.previous}
     todo = [p for p in pts if p.index not in records]

@@ -57,9 +57,10 @@ def main(argv=None) -> int:
 
 
 def _out(reader, args):
-    from pathlib import Path
+    from ...outpath import writable_dir
 
-    return Path(args.out) if args.out else reader.path.parent / f"replay-{args.mode}"
+    # checked before the replay runs; an empty --out is refused, not taken for the default
+    return writable_dir(reader.path.parent / f"replay-{args.mode}" if args.out is None else args.out, "--out")
 
 
 def _plain(o):
