@@ -178,3 +178,33 @@ def test_render_replay_and_sweep_refuse_an_out_they_cannot_write(run_dir, image,
     for args in (["render", str(image)], ["replay", str(run_dir), "--mode", "plant"]):
         _refused([*args, "--out", ""], "--out is empty")
     assert [p.name for p in tmp_path.iterdir()] == ["afile"]
+
+
+def _readme_commands():
+    import pathlib
+    import re
+
+    text = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    for cell in re.findall(r"^\| `(rtctl [^`]*)` \|", text, flags=re.M):
+        yield cell.replace("\\|", "|")
+
+
+def test_the_readme_writes_as_required_only_options_the_help_requires():
+    from test_cli_newuser import _required_positionals
+
+    checked = []
+    for row in _readme_commands():
+        cmd = []
+        for w in row.split()[1:]:  # the command words: up to the first argument or option
+            if not w.replace("-", "").isalpha() or w.isupper() or w.startswith("-"):
+                break
+            cmd.append(w)
+        code, out, _ = _call([*cmd, "--help"])
+        if code != 0 or not out.startswith("usage: "):
+            continue
+        usage = out.split("\n\n")[0]
+        needed = {w for w in _required_positionals(usage, " ".join(["rtctl", *cmd])) if w.startswith("--")}
+        written = {w for w in _required_positionals("usage: " + row, "rtctl") if w.startswith("--")}
+        assert written <= needed, (row, written - needed, usage)
+        checked.append(" ".join(cmd))
+    assert "render" in checked and "sweep" in checked, checked
