@@ -121,11 +121,14 @@ def test_replay_compares_a_tail_shorter_than_one_window(run_dir, tmp_path):
 @pytest.mark.parametrize("args, words", [
     (["bench", "realtime", "--seconds", "nan"], ["--seconds in (0, 86400]"]),
     (["bench", "realtime", "--seconds", "inf"], ["--seconds in (0, 86400]"]),
+    (["bench", "realtime", "--seconds", "1", "--rounds", "1000000"],
+     ["leaves 1e-06 s a round, less than one block (667 us)"]),
     (["bench", "control", "--blocks", ""], ["--blocks ''", "give block sizes like 16,32,64"]),
     (["selfsense", "line-bimorph-5", "--beat", "nan"], ["--beat nan: must be in [0, 20] Hz"]),
     (["selfsense", "line-bimorph-5", "--snr", "nan"], ["--snr nan"]),
     (["selfsense", "line-bimorph-5", "--freqs", "nan"], ["--freqs 'nan'", "finite frequencies > 0 Hz"]),
-], ids=["realtime-nan", "realtime-inf", "control-no-blocks", "selfsense-beat", "selfsense-snr", "selfsense-freqs"])
+], ids=["realtime-nan", "realtime-inf", "realtime-rounds", "control-no-blocks", "selfsense-beat", "selfsense-snr",
+        "selfsense-freqs"])
 def test_bench_and_selfsense_refuse_numbers_they_cannot_use(args, words, tmp_path):
     if args[0] == "selfsense":
         args = [*args, "--out", str(tmp_path)]

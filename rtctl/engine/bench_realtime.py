@@ -230,6 +230,11 @@ def measure(a) -> dict:
     sc = scenes.load(a.scene, [*a.overrides, f"timing.block={a.block}"])
     fs, block = float(sc.timing.fs), int(sc.timing.block)
     period_us = 1e6 * block / fs
+    if a.seconds / a.rounds < block / fs:  # a round without one whole block measures nothing, a million times
+        from ..errors import SceneError
+
+        raise SceneError(f"--seconds {a.seconds:g} over --rounds {a.rounds} leaves {a.seconds / a.rounds:.3g} s a "
+                         f"round, less than one block ({period_us:.0f} us); give fewer rounds or more seconds")
     res = {"scene": a.scene, "fs": fs, "block": block, "period_us": period_us, "seconds": a.seconds,
            "rounds": a.rounds, "load": {"cpu": a.load, "tool": None}, "cyclictest": shutil.which("cyclictest"),
            "notes": [], "runs": []}
