@@ -464,6 +464,11 @@ def _cross_checks(s: dict, origin: str) -> None:
             raise _fail(origin, f"{p}.beat", tone["beat"], f"must be below 2 * freq ({2 * tone['freq']:g} Hz)")
         if tone["start"] >= t["duration"]:
             raise _fail(origin, f"{p}.start", tone["start"], f"after the end of the run ({t['duration']:g} s)")
+    c = s["control"]
+    if c["calibrate"] == "auto" and c["calibration"]:
+        # auto measures and fits a calibration of its own, which the run would use in the file's stead
+        raise _fail(origin, "control.calibrate", c["calibrate"], f"measures a calibration of its own: with "
+                    f"control.calibration = {c['calibration']!r} one of the two goes unused; give one of them")
     _play_checks(s, names, origin)
     if s["events"]:
         event_states(s, origin)
