@@ -1,6 +1,7 @@
 """What a scene needs, and what it leaves out.
 
-Pure bookkeeping on the validated scene: imports nothing. :func:`rtctl.engine.rig.build` constructs,
+Pure bookkeeping on the validated scene: imports nothing (whether an optional package is
+installed is asked of the import system without importing it). :func:`rtctl.engine.rig.build` constructs,
 imports and compiles exactly the components listed here, and ``rtctl check`` prints them.
 """
 
@@ -40,6 +41,26 @@ AVAILABLE = frozenset({
     "selfsense", "io.audio", "io.serial", "io.daq", "control",
 })
 
+#: components whose package is an optional extra of rtctl: (the package's module, how to install it).
+#: Without it the component is unavailable on this machine, refused as one this version lacks.
+OPTIONAL = {"io.daq": ("nidaqmx", "pip install 'rtctl[daq]'")}
+
+
+def _missing(component: str) -> bool:
+    """True when ``component``'s optional package is not installed."""
+    import importlib.util
+    import sys
+
+    if component not in OPTIONAL:
+        return False
+    module = OPTIONAL[component][0]
+    if module in sys.modules:  # imported already (None: an import that failed, or is blocked)
+        return sys.modules[module] is None
+    try:
+        return importlib.util.find_spec(module) is None
+    except (ImportError, ValueError):  # a parent package that fails to import
+        return True
+
 
 @dataclass(frozen=True)
 class Needs:
@@ -55,7 +76,9 @@ class Needs:
 
     @property
     def unavailable(self) -> tuple[str, ...]:
-        return tuple(c for c in self.needed if c not in AVAILABLE)
+        """Needed components a run cannot have: not in this version, or their optional package
+        not installed. A scene needing one is refused by ``rtctl run`` and so by ``rtctl check``."""
+        return tuple(c for c in self.needed if c not in AVAILABLE or _missing(c))
 
     def to_dict(self) -> dict:
         return {
@@ -107,7 +130,12 @@ def needs(scene) -> Needs:
 
 
 def unavailable_message(component: str, why: str) -> str:
-    """One line telling the user that ``component`` is not in this version, and what to do."""
+    """One line telling the user that ``component`` is not in this version (or its optional
+    package is not installed), and what to do."""
+    if component in AVAILABLE:
+        module, how = OPTIONAL[component]
+        return (f"{why} needs the {COMPONENTS[component][0]} ({component}), and its package {module} is not "
+                f"installed ({how})")
     fixes = {
         "selfsense": "use control.mode = 'open' for now",
         "dsp.lockin": "use control.mode = 'open' for now",
