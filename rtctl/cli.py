@@ -258,16 +258,17 @@ def _scenes(args) -> int:
 
 
 def _check(args) -> int:
+    from .engine.admit import admit
     from .needs import needs, unavailable_message
-    from .stimulus import check
 
     s = _load(args)
-    check(s)  # the stimulus compiled as the run compiles it: its errors here, not at run
+    admit(s)  # what the run refuses before it runs, by the run's own checks: their errors here
     n = needs(s)
+    valid = not n.unavailable  # a component the run cannot have: the run refuses it, so check does
     if args.json:
-        _print_json({"scene": s.scene.name, "valid": True, **n.to_dict(), "modules": list(n.modules)})
+        _print_json({"scene": s.scene.name, "valid": valid, **n.to_dict(), "modules": list(n.modules)})
     else:
-        print(f"{s.source}: valid ({s.n_channels} channels, backend {s.io.backend})")
+        print(f"{s.source}: {'valid' if valid else 'invalid'} ({s.n_channels} channels, backend {s.io.backend})")
         print("needs:")
         for c, why in n.needed.items():
             print(f"  {c:<16} {why}")

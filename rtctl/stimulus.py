@@ -72,15 +72,20 @@ class Tone:
 def check(scene) -> None:
     """Refuse what building ``scene``'s stimulus would refuse, in the same one line, without
     building plants, banks or kernels: its tones' combinations, and its signals compiled and put
-    on channels (:func:`rtctl.voices.build`, the code the run uses). ``rtctl check`` calls it, so a
-    bad chirp, product or sequence is caught there, not at ``run``. Rendered stimuli (images,
-    Braille, shapes) are checked when they render, as the run builds.
+    on channels (:func:`rtctl.voices.build`, the code the run uses), an image's file read by the
+    renderer's loader, and what observing or closed loop needs of them (:func:`check_control`).
+    ``rtctl check`` calls it, so a bad chirp, product, sequence or image file is caught there,
+    not at ``run``. What rendering itself refuses (an image's content, Braille text, shapes) is
+    checked when it renders, as the run builds.
 
     Raises
     ------
     SceneError
     """
+    if scene.stimulus.kind == "image":
+        load_image(scene)
     if scene.stimulus.kind != "tones":
+        check_control(scene, 0)
         return
     from .models import n_channels
 
@@ -88,12 +93,79 @@ def check(scene) -> None:
     for g in scene.actuator:  # the rig's channel numbering: groups one after another
         offsets[g.name], n = n, n + n_channels(g)
     _check_tones(scene, offsets)
+    voices = []
     if scene.stimulus.play:
         from .dsp._kernels import MAX_RAMP  # a constant: importing compiles nothing
         from .voices import build
 
         fs = float(scene.timing.fs)
-        build(scene, offsets, fs, float(round(scene.timing.duration * fs)), MAX_RAMP, int(scene.timing.block))
+        voices = build(scene, offsets, fs, float(round(scene.timing.duration * fs)), MAX_RAMP,
+                       int(scene.timing.block))
+    check_control(scene, len(voices))
+
+
+def check_control(scene, n_voices: int) -> None:
+    """Refuse what the rig refuses of ``control.observe`` and ``control.mode = closed`` before it
+    builds an observer, in the same one line: an observer is designed on the tone frequencies, so
+    it needs ``stimulus.kind = 'tones'``; closed loop holds at a target the sine tones on bimorph
+    groups (the tips self-sensing reads), so a scene with none of them, and no played voice
+    (``n_voices``: :func:`rtctl.voices.build` refuses a closed-loop voice anywhere else), would
+    run open loop saying nothing. The rig (:class:`rtctl.engine.rig.Rig`) and ``rtctl check``
+    both call it.
+
+    Raises
+    ------
+    SceneError
+    """
+    ctl, st = scene.control, scene.stimulus
+    closed = ctl.mode == "closed"
+    if not (closed or ctl.observe):
+        return
+    if st.kind != "tones":
+        raise SceneError(f"{scene.source}: control.{'mode = closed' if closed else 'observe'} needs "
+                         f"stimulus.kind = 'tones' (the observer is designed on the tone frequencies; "
+                         f"rendered stimuli change them), got {st.kind!r}")
+    if not closed or n_voices:
+        return
+    open_ = {}
+    for t in st.tones:
+        g = scene.group(t.actuator)
+        target = tone_target_m(scene, t)
+        if g.type == "bimorph" and t.shape == "sine" and math.isfinite(target):
+            return  # a tone the controller holds
+        why = (f"{g.type}, which self-sensing does not read" if g.type != "bimorph"
+               else "no target: give target_um" if not math.isfinite(target)
+               else "a square or pulse tone, which it does not hold")
+        open_.setdefault(f"actuator {g.name!r} ({why})", []).append(f"{g.name}.{t.channel}")
+    where = "; ".join(f"{', '.join(chs)} on {what}" for what, chs in open_.items())
+    raise SceneError(f"{scene.source}: control.mode = closed: no tone to hold at a target: closed loop "
+                     f"holds the bimorph tips self-sensing reads, and this scene plays {where}")
+
+
+def image_path(scene) -> str:
+    """The file ``stimulus.image`` names: relative to the scene file when it is there, else as
+    given; refused in one line when the method cannot render an image or no file is named."""
+    st = scene.stimulus
+    if st.method not in ("roi", "canny", "frequency", "beat"):
+        raise SceneError(f"{scene.source}: stimulus.method = {st.method!r}: an image needs roi | canny | "
+                         "frequency | beat")
+    if not st.image:
+        raise SceneError(f"{scene.source}: stimulus.image is empty: name the image file to render")
+    path = st.image
+    if not os.path.isabs(path) and scene.source and not scene.source.startswith("<"):
+        cand = os.path.join(os.path.dirname(scene.source), path)
+        path = cand if os.path.exists(cand) else path
+    return path
+
+
+def load_image(scene):
+    """``stimulus.image`` read and checked by the renderer's loader
+    (:func:`rtctl.render.image.load_image`): a missing, unreadable or refused file in its one
+    line. The build renders what this returns; ``rtctl check`` calls it to refuse the file
+    without rendering."""
+    from .render.image import load_image as load
+
+    return load(image_path(scene))
 
 
 def _check_tones(scene, offsets: dict) -> None:
@@ -390,19 +462,9 @@ class RenderStage:
 
     def _build_image(self, scene, st, grid, n_channels):
         from .render.factory import make_renderer
-        from .render.image import load_image
         from .render.path import Path, from_csv, raster
 
-        if st.method not in ("roi", "canny", "frequency", "beat"):
-            raise SceneError(f"{scene.source}: stimulus.method = {st.method!r}: an image needs roi | canny | "
-                             "frequency | beat")
-        if not st.image:
-            raise SceneError(f"{scene.source}: stimulus.image is empty: name the image file to render")
-        path = st.image  # relative to the scene file when it is there
-        if not os.path.isabs(path) and scene.source and not scene.source.startswith("<"):
-            cand = os.path.join(os.path.dirname(scene.source), path)
-            path = cand if os.path.exists(cand) else path
-        image = load_image(path)
+        image = load_image(scene)
         kw = {"grid": grid}
         if st.hia:
             kw["hia"] = st.hia

@@ -30,8 +30,8 @@ from pathlib import Path
 
 from ..errors import ModelError, RtctlError, SceneError
 
-__all__ = ["Calibration", "FORMAT", "auto", "calibrate", "default_path", "document", "excitation", "lifted",
-           "measure", "model_changes", "model_of", "plan", "read", "scene_calibration", "summary_of", "write"]
+__all__ = ["Calibration", "FORMAT", "auto", "calibratable", "calibrate", "default_path", "document", "excitation",
+           "lifted", "measure", "model_changes", "model_of", "plan", "read", "scene_calibration", "summary_of", "write"]
 
 #: The calibration file's format tag (a reader refuses any other).
 FORMAT = "rtctl-calibration-1"
@@ -66,6 +66,13 @@ class GroupPlan:
     f1_hz: float
     ring_s: float
     use: dict = field(default_factory=dict)
+
+
+def calibratable(scene) -> None:
+    """Refuse, in one line, a scene with nothing to calibrate (no bimorph group): before the
+    measurement, and by ``rtctl check`` for ``control.calibrate = "auto"``."""
+    if not _groups(scene):
+        raise SceneError(f"{scene.source}: nothing to calibrate: the scene has no bimorph group")
 
 
 def _groups(scene) -> list:
@@ -212,8 +219,7 @@ def measure(scene, run, say=None) -> Measurement:
     from ..selfsense.calibrate import phasors
     from ..trace import TraceReader
 
-    if not _groups(scene):
-        raise SceneError(f"{scene.source}: nothing to calibrate: the scene has no bimorph group")
+    calibratable(scene)
     plans, settle = plan(scene)
     exc = excitation(scene, plans, settle)
     if scene.io.backend == "sim":

@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import SceneError
 from ..models import Models, n_channels, n_segments, sensed_layout
 from ..needs import needs, unavailable_message
-from ..stimulus import tone_receptor, tone_target_m
+from ..stimulus import check_control, tone_receptor, tone_target_m
 from .kernels import clear, snapshot
 from .queue import ParamQueue, drain
 from .stage import Stage
@@ -104,6 +104,7 @@ class Rig:
         #: per controlled bank tone, the rms of its tip estimate's noise, m (Observer.noise_floor)
         self.control_noise = {}
         if scene.control.observe or self.closed:
+            check_control(scene, len(self.stimulus.voices))  # as `rtctl check` refuses it
             self._build_observers(scene)
         if self.closed:
             self._build_control(scene)
@@ -201,10 +202,6 @@ class Rig:
         from ..selfsense.rt import prefilter_cutoffs, short_windows
         from ..selfsense.stage import ObserverStage
 
-        if scene.stimulus.kind != "tones":
-            raise SceneError(f"{scene.source}: control.{'mode = closed' if self.closed else 'observe'} needs "
-                             f"stimulus.kind = 'tones' (the observer is designed on the tone frequencies; "
-                             f"rendered stimuli change them), got {scene.stimulus.kind!r}")
         self.latency = scene.io.latency_blocks or int(self.device.latency_blocks)
         ch0 = 0
         for g in scene.actuator:
@@ -312,9 +309,9 @@ class Rig:
                 self.controlled[int(b)] = (ctl, j)
 
     def _open_tones(self, scene) -> None:
-        """Closed loop holds the tips self-sensing reads (bimorph groups), at a target: a scene
-        with no such tone is refused (it would run open loop, saying nothing), and the tones it
-        leaves open loop are named in a warning."""
+        """Closed loop holds the tips self-sensing reads (bimorph groups), at a target: the tones
+        it leaves open loop are named in a warning (a scene with none it holds was refused
+        before the observers were built, by :func:`rtctl.stimulus.check_control`)."""
         open_ = {}
         for tone, bank in zip(self.tones, self.stimulus.bank_index):
             if not any(int(b) in self.controlled for b in bank):  # (a square or pulse tone has no sines)
@@ -326,9 +323,6 @@ class Rig:
         if not open_:
             return
         where = "; ".join(f"{', '.join(chs)} on {what}" for what, chs in open_.items())
-        if not self.controlled:
-            raise SceneError(f"{scene.source}: control.mode = closed: no tone to hold at a target: closed loop "
-                             f"holds the bimorph tips self-sensing reads, and this scene plays {where}")
         self.warnings.append(f"control.mode = closed: these tones play open loop: {where}")
 
     def _noise_floor(self, g, obs, c_, slot, bank, chan, f, target) -> None:
