@@ -59,6 +59,11 @@ def test_check_reads_the_calibration_file_as_the_run_does(capsys, tmp_path, text
     assert err == f"rtctl: error: {e.value}\n"
 
 
+def test_a_calibration_name_too_long_is_one_line(capsys):
+    code, out, err = run_cli(capsys, "check", "line-bimorph-5", "--set", "control.calibration=" + "a" * 5000)
+    assert code == 2 and out == "" and "cannot read it" in err and err.count("\n") == 1, err[:300]
+
+
 def test_closed_loop_refusals_are_the_rigs(capsys, tmp_path):
     """The run refuses each closed-loop scene in the line check gave, before compiling anything."""
     for name in ("dot-4x4", "pvdf-6x8"):

@@ -503,8 +503,12 @@ def _resolve(scene, value: str) -> Path:
     else:
         candidates = [Path(scene.source).resolve().parent / p, Path.cwd() / p]
     for c in candidates:
-        if c.is_file():
-            return c
+        try:
+            if c.is_file():
+                return c
+        except OSError as e:  # a name too long for the file system: is_file raises rather than says False
+            raise SceneError(f"{scene.source}: control.calibration = {_short(value)}: cannot read it "
+                             f"({e.strerror})") from None
     where = " or ".join(str(c) for c in candidates)
     raise SceneError(f"{scene.source}: control.calibration = {value!r}: no such file ({where})")
 
