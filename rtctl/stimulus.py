@@ -85,7 +85,7 @@ def check(scene) -> None:
     if scene.stimulus.kind == "image":
         load_image(scene)
     if scene.stimulus.kind != "tones":
-        check_control(scene, 0)
+        check_control(scene, [])
         return
     from .models import n_channels
 
@@ -101,17 +101,19 @@ def check(scene) -> None:
         fs = float(scene.timing.fs)
         voices = build(scene, offsets, fs, float(round(scene.timing.duration * fs)), MAX_RAMP,
                        int(scene.timing.block))
-    check_control(scene, len(voices))
+    check_control(scene, voices)
 
 
-def check_control(scene, n_voices: int) -> None:
+def check_control(scene, voices) -> None:
     """Refuse what the rig refuses of ``control.observe`` and ``control.mode = closed`` before it
     builds an observer, in the same one line: an observer is designed on the tone frequencies, so
-    it needs ``stimulus.kind = 'tones'``; closed loop holds at a target the sine tones on bimorph
-    groups (the tips self-sensing reads), so a scene with none of them, and no played voice
-    (``n_voices``: :func:`rtctl.voices.build` refuses a closed-loop voice anywhere else), would
-    run open loop saying nothing. The rig (:class:`rtctl.engine.rig.Rig`) and ``rtctl check``
-    both call it.
+    it needs ``stimulus.kind = 'tones'``; under closed loop a frequency of a channel is held by
+    one tone (:func:`_one_reader_per_frequency`); closed loop holds at a target the sine tones on
+    bimorph groups (the tips self-sensing reads), so a scene with none of them, and no played
+    voice (:func:`rtctl.voices.build` refuses a closed-loop voice anywhere else), would run open
+    loop saying nothing. ``voices``: the played voices, ``(Voice, closed, receptor)`` as
+    :func:`rtctl.voices.build` returns them. The rig (:class:`rtctl.engine.rig.Rig`) and
+    ``rtctl check`` both call it.
 
     Raises
     ------
@@ -125,7 +127,10 @@ def check_control(scene, n_voices: int) -> None:
         raise SceneError(f"{scene.source}: control.{'mode = closed' if closed else 'observe'} needs "
                          f"stimulus.kind = 'tones' (the observer is designed on the tone frequencies; "
                          f"rendered stimuli change them), got {st.kind!r}")
-    if not closed or n_voices:
+    if not closed:
+        return
+    _one_reader_per_channel(scene, voices)
+    if voices:
         return
     open_ = {}
     for t in st.tones:
@@ -140,6 +145,57 @@ def check_control(scene, n_voices: int) -> None:
     where = "; ".join(f"{', '.join(chs)} on {what}" for what, chs in open_.items())
     raise SceneError(f"{scene.source}: control.mode = closed: no tone to hold at a target: closed loop "
                      f"holds the bimorph tips self-sensing reads, and this scene plays {where}")
+
+
+def _one_reader_per_channel(scene, voices) -> None:
+    """:func:`_one_reader_per_frequency` on every channel of every bimorph group, from the scene's
+    tones (a beat pair's two sines, split by the oscillator's own ``beat_tones``) and the played
+    voices, the frequencies the rig's observers are built on."""
+    from .models import n_channels
+
+    offsets, ch0 = {}, 0
+    for g in scene.actuator:
+        offsets[g.name], ch0 = ch0, ch0 + n_channels(g)
+    held: dict[int, list] = {}
+    for t in scene.stimulus.tones:
+        if t.shape == "sine" and t.beat > 0:
+            from .dsp.oscillator import beat_tones
+
+            freqs = [float(f) for f in beat_tones(t.freq, t.beat, t.voltage)[0]]
+        else:
+            freqs = [t.freq]
+        held.setdefault(offsets[t.actuator] + t.channel, []).extend(freqs)
+    played: dict[int, list] = {}
+    for v, _, _ in voices:
+        played.setdefault(v.channel, []).append(float(v.freq[0]))
+    for g in scene.actuator:
+        if g.type != "bimorph":
+            continue
+        for c in range(offsets[g.name], offsets[g.name] + n_channels(g)):
+            _one_reader_per_frequency(scene, f"{g.name}.{c - offsets[g.name]}", held.get(c, []),
+                                     played.get(c, []))
+
+
+def _one_reader_per_frequency(scene, channel: str, held: list, played: list) -> None:
+    """Under closed loop, a frequency of a channel is held by one tone: its controller reads the
+    observer's one amplitude there, so a second tone (or beat pair's sine) of the scene at it, or
+    a played voice at a scene tone's frequency, would have each controller read the sum of both.
+    A played signal's voices take turns, so they may share one. ``held``: the frequencies of the
+    scene's tones on ``channel`` (a beat pair's two), ``played``: its voices'.
+
+    Raises
+    ------
+    SceneError
+    """
+    twice = sorted({f for f in held if held.count(f) > 1})
+    both = sorted({f for f in played if f in held})
+    if twice or both:
+        what = (f"{' and '.join(f'{f:g}' for f in twice)} Hz in more than one tone (or beat pair)" if twice
+                else f"{' and '.join(f'{f:g}' for f in both)} Hz in a tone and in a played voice")
+        raise SceneError(
+            f"{scene.source}: control.mode = closed: channel {channel} plays {what}, and "
+            "its observer reads one amplitude at a frequency, so their controllers would each read "
+            "their sum: make them one tone with the sum of their targets")
 
 
 def image_path(scene) -> str:

@@ -20,6 +20,15 @@ REFUSED = [  # (scene, --set overrides, words the one line holds)
     ("line-bimorph-5", ["control.mode=closed", "stimulus.tones.0.shape=square", "stimulus.tones.1.shape=square",
                         "stimulus.tones.2.shape=square", "stimulus.tones.3.shape=square",
                         "stimulus.tones.4.shape=square"], "a square or pulse tone, which it does not hold"),
+    ("line-bimorph-5-closed", ["stimulus.tones=[{channel = 0, freq = 250, voltage = 1, target_um = 1}, "
+                               "{channel = 0, freq = 250, voltage = 1, target_um = 2}]", "events=[]"],
+     "channel lateral.0 plays 250 Hz in more than one tone"),
+    ("line-bimorph-5-closed", ["stimulus.tones=[{channel = 0, freq = 250, beat = 30, voltage = 1, target_um = 1}, "
+                               "{channel = 0, freq = 265, voltage = 1, target_um = 2}]", "events=[]"],
+     "channel lateral.0 plays 265 Hz in more than one tone"),
+    ("line-bimorph-5-closed", ['stimulus.signals=[{name = "c", type = "sine", freq = 120.0, amp = 12.0}]',
+                               "stimulus.play=[{signal = 'c', channel = 3, start = 0.1}]", "events=[]"],
+     "channel lateral.3 plays 120 Hz in a tone and in a played voice"),
     ("solenoid-3x3", ["control.calibrate=auto"], "nothing to calibrate"),
     ("line-bimorph-5", ["io.backend=serial"], "drives exactly one actuator group of type dot or sma"),
     ("line-bimorph-5", ["control.calibration=cal/none.json"], "no such file"),
@@ -34,7 +43,7 @@ def _sets(overrides):
     return [x for o in overrides for x in ("--set", o)]
 
 
-@pytest.mark.parametrize("name, overrides, words", REFUSED, ids=[f"{n}:{o[0]}" for n, o, _ in REFUSED])
+@pytest.mark.parametrize("name, overrides, words", REFUSED, ids=[f"{n}:{w}" for n, _, w in REFUSED])
 def test_check_refuses_what_the_run_refuses(capsys, name, overrides, words):
     code, out, err = run_cli(capsys, "check", name, *_sets(overrides))
     assert code == 2 and out == "", (code, out)

@@ -104,7 +104,7 @@ class Rig:
         #: per controlled bank tone, the rms of its tip estimate's noise, m (Observer.noise_floor)
         self.control_noise = {}
         if scene.control.observe or self.closed:
-            check_control(scene, len(self.stimulus.voices))  # as `rtctl check` refuses it
+            check_control(scene, self.stimulus.voices)  # as `rtctl check` refuses it
             self._build_observers(scene)
         if self.closed:
             self._build_control(scene)
@@ -212,8 +212,6 @@ class Rig:
                 # of whatever plays at it (two tones or voices at one frequency: their sum)
                 per = [list(dict.fromkeys(f for tn in self.tones if tn.channel == c for f in tn.freqs))
                        for c in range(ch0, c1)]
-                if self.closed:
-                    self._one_reader_per_frequency(scene, ch0, c1)
                 width = max(1, max(len(p) for p in per))
                 freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
                 window, lstsq, hop = (short_windows(freqs, self.fs, self.block) if self.closed
@@ -231,25 +229,6 @@ class Rig:
                 self.observer_stages.append((g.name, st, g, ch0))
                 self.observers.append((g.name, st, g, ch0))
             ch0 += n
-
-    def _one_reader_per_frequency(self, scene, ch0: int, c1: int) -> None:
-        """Under closed loop, a frequency of a channel is held by one tone: its controller reads
-        the observer's one amplitude there, so a second tone (or beat pair's sine) of the scene at
-        it, or a played voice at a scene tone's frequency, would have each controller read the
-        sum of both. A played signal's voices take turns, so they may share one."""
-        scene_tones = self.tones[:len(self.tones) - len(self.stimulus.voices)]
-        voice_tones = self.tones[len(scene_tones):]
-        for c in range(ch0, c1):
-            held = [f for tn in scene_tones if tn.channel == c for f in tn.freqs]
-            twice = sorted({f for f in held if held.count(f) > 1})
-            played = sorted({f for tn in voice_tones if tn.channel == c for f in tn.freqs if f in held})
-            if twice or played:
-                what = (f"{' and '.join(f'{f:g}' for f in twice)} Hz in more than one tone (or beat pair)" if twice
-                        else f"{' and '.join(f'{f:g}' for f in played)} Hz in a tone and in a played voice")
-                raise SceneError(
-                    f"{scene.source}: control.mode = closed: channel {self.channel_names[c]} plays {what}, and "
-                    "its observer reads one amplitude at a frequency, so their controllers would each read "
-                    "their sum: make them one tone with the sum of their targets")
 
     def _build_control(self, scene):
         """Amplitude control of every sine tone with a target, one controller per observed group:
