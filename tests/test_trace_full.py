@@ -210,3 +210,39 @@ def test_a_device_that_runs_its_own_blocks_is_stopped_too(tmp_path, monkeypatch)
     assert len(rig.device.delivered) == 35  # asked to stop at once: the fade's blocks, no more
     w.close(check=False)
     assert TraceReader(tmp_path).n_blocks == 24 and "holds the first 0.096 s of 1 s (24 blocks)" in w.failure(1.0)
+
+
+def test_check_trace_reads_a_trace_cut_by_a_full_disk_as_honest(tmp_path, monkeypatch, capsys):
+    """The invariant checker on a run a full disk ended: the trace stops where the write failed
+    (mid-run, outputs still on), and the summary's one fault is that failure, which no record
+    carries. Both read as violations before ("end": the outputs end at 100 V; "summary": a fault
+    no record carries); now `end` is not checked and says why, and everything else still is."""
+    from rtctl import safety
+    from rtctl.check import check_trace
+    from rtctl.check import main as check_main
+
+    _fill_after(monkeypatch, 1_500_000)
+    summary = run(scenes.load("line-bimorph-5", ["timing.duration=1"]), out_dir=tmp_path, plot=False).summary
+    monkeypatch.undo()  # (the files are written: reading them needs no seam)
+    rep = check_trace(tmp_path)
+    assert rep["ok"] and rep["cut"] == "no space left on device writing blocks.bin", rep
+    assert rep["blocks"] > 100 and np.any(TraceReader(tmp_path / "trace").signal("drive")[:, -1] != 0.0)
+    assert check_main([str(tmp_path)]) == 0
+    assert "end          not checked: the trace ends early (no space left on device" in capsys.readouterr().out
+    # the summary is still checked against the records: a warning no record carries
+    text = next(t for b, t in safety.STATUS_NAMES.items() if not b & (safety.FAULTS | safety.DEADLINE_MISSED
+                                                                     | safety.TRACE_DROPPED))
+    rep = check_trace(tmp_path, dict(summary, warnings=[text]))
+    assert not rep["ok"] and rep["violations"]["summary"] == 1, rep
+    # and a trace without a write failure must still end at 0 V and hold its run's blocks
+    rep = check_trace(tmp_path, dict(summary, trace=None))
+    assert not rep["ok"] and rep["violations"]["summary"] >= 1
+
+
+def test_check_trace_of_no_trace_says_it_once(tmp_path):
+    """An unreadable trace is named once (the reader's line was wrapped in a second copy of it)."""
+    from rtctl.check import TraceUnreadable, check_trace
+
+    with pytest.raises(TraceUnreadable) as e:
+        check_trace(tmp_path / "nonexist")
+    assert str(e.value).count("not a readable rtctl trace") == 1, str(e.value)
