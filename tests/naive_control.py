@@ -117,6 +117,8 @@ def _let_go(col, y, r, a):
             col[RIPPLE] = max(abs(y - col[PREVY]), RIPPLE_DECAY * rip)
         if abs(y / r - 1) <= AGREE:
             col[ANCHOR] = y
+        elif y < r and a >= col[AMAX]:  # saturated under the target: a rise counts from the target
+            col[ANCHOR] = r
     col[PREVY] = y
     return col[HIGH] >= RELEASE_RUN
 
@@ -257,6 +259,9 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             step = min(max(step, 1 / MAX_STEP), MAX_STEP)
             if limited and step > 1:
                 step = 1.0
+            if (step > 1 and a >= col[AMAX]) or step == 1.0:  # nothing to change: watch on
+                col[TRIES] = 0.0
+                continue
             up = 1.0 if step > 1 else -1.0
             if not 1 / REVERSAL < step < REVERSAL:
                 _pace_anew(col)

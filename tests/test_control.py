@@ -18,6 +18,7 @@ from rtctl.control._kernels import (
     MAX_STEP,
     NREL,
     NSTR,
+    NWATCH,
     ON,
     P1V,
     REF,
@@ -783,6 +784,35 @@ def test_a_release_drops_the_drive_to_the_most_responsive_load_at_once(ratio, fi
             assert tips[-1] == pytest.approx(target, rel=0.01) or ratio < 3.0  # (below: the loop brings it up)
         else:
             assert over > window and loop.ctl.state[NREL, 0] == 0
+
+
+def test_a_saturated_tone_released_when_its_tip_passes_the_target():
+    """A tone at its cap (30 V, its tip 0.6 of the target) whose plant turns 3x as responsive:
+    while saturated the watch runs on (the corrections the cap forbids leave it alone, where each
+    had made the loop blind for a window), and the rise is measured from the target, so the
+    second estimate in a row more than 2 % + 0.1 % (noise) + twice its move from block to block
+    (4 % of the target per block as the window fills: 10.1 % in all) above it drops the drive to
+    the target over the most responsive load; the tip is over the target for 16 blocks. Before, a
+    saturated tone had no on-target estimate to rise from: the tip stayed 1.8x the target until
+    the window's corrections, over 30 blocks."""
+    target, window = 5e-6, 30
+    loop = Loop([1e-7], [1e-7], [target], amax=30.0, window=window, gain_top=[3e-7], release=[0.001 * target])
+    loop.run(400)
+    assert loop.ctl.state[CMD, 0] == 30.0 and loop.ctl.state[SAT, 0] == 1.0
+    assert loop.ctl.state[WAIT, 0] == 0 and loop.ctl.state[NWATCH, 0] > 300  # watching since the cap
+    loop.plant[0] = 3e-7
+    tips = loop.run(60)[400:, 0]
+    assert loop.ctl.state[NREL, 0] == 1
+    assert int(np.count_nonzero(tips > 1.1 * target)) == 16 and np.all(tips[16:] <= target * (1 + 1e-9))
+    # a rise of 12 % of the target per block steps over the target's 5 % band (no estimate there
+    # to anchor it) and is measured from the target all the same: over 2.1 % + twice 12 %, at
+    # 1.30 and 1.42
+    loop = Loop([1e-7], [1e-7], [target], amax=30.0, window=window, gain_top=[3e-7], release=[0.001 * target])
+    loop.run(400)
+    loop.read([0.58, 0.70, 0.82, 0.94, 1.06, 1.18, 1.30], target)
+    assert loop.ctl.state[NREL, 0] == 0
+    loop.read([1.42], target)
+    assert loop.ctl.state[NREL, 0] == 1
 
 
 @pytest.mark.parametrize("jump, fires", [(0.045, True), (0.040, False)])

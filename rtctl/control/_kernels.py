@@ -223,6 +223,11 @@ def _released(state, i, y, r, a):
             state[RIPPLE, i] = max(abs(y - state[PREVY, i]), RIPPLE_DECAY * rip)
         if abs(y / r - 1.0) <= AGREE:
             state[ANCHOR, i] = y
+        elif y < r and a >= state[AMAX, i]:
+            # saturated under the target: a rise is measured from the target, which the tip
+            # cannot pass unless the plant changed (a 40 Hz tone at its cap under 200 g rose to
+            # 1.5-2x the target when the finger lifted, with no on-target estimate to rise from)
+            state[ANCHOR, i] = r
     state[PREVY, i] = y
     return state[HIGH, i] >= RELEASE_RUN
 
@@ -488,6 +493,12 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             step = min(max(step, 1.0 / MAX_STEP), MAX_STEP)
             if limited and step > 1.0:
                 step = 1.0  # the limiter holds this channel: no windup
+            if (step > 1.0 and a >= state[AMAX, i]) or step == 1.0:
+                # no change to make (at the cap, or held by the limiter): keep watching, not blind
+                # for a window after a command that is the one before (a finger letting go of a
+                # saturated tone must find the watch running)
+                state[TRIES, i] = 0.0
+                continue
             d = 1.0 if step > 1.0 else -1.0
             if not (step < REVERSAL and step * REVERSAL > 1.0):
                 _pace_anew(state, i)
