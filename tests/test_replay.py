@@ -120,6 +120,20 @@ def test_plant_replay_of_a_simulated_recording(recorded, tmp_path, capsys):
     assert (tmp_path / "plant.png").stat().st_size > 0 and (tmp_path / "residual.csv").exists()
 
 
+def test_plant_replay_of_a_settle_tail_is_the_sensor_noise_not_a_device_difference(recorded, tmp_path, capsys):
+    # past 0.25 s of a 0.2 s run the drive is 0 V and the tips settle: the recorded currents are
+    # the sensor's noise (1e-6 V over 100 ohm), the model's (noiseless) under one ADC step. The
+    # residual is then the noise over the recorded rms, computed here from the trace alone.
+    code, rep, _ = replay(capsys, recorded, "--mode", "plant", "--skip", 0.25, "--out", tmp_path)
+    assert code == 0 and rep["residual_pct"] > 90, rep["line"]
+    rec = np.asarray(TraceReader(recorded / "trace").records["sensed"], dtype=float)
+    k0 = round(0.25 * 48000 / 32) + rep["latency_blocks"]
+    want = 100 * 1e-6 / 100 / np.sqrt(np.mean(rec[k0:] ** 2))
+    assert rep["noise_floor_pct"] == pytest.approx(want, rel=1e-3)
+    assert rep["residual_pct"] == pytest.approx(want, rel=0.05)
+    assert "differs" not in rep["line"] and "cannot tell the model from the device" in rep["line"], rep["line"]
+
+
 def test_plant_replay_names_a_permittivity_mismatch(tmp_path, capsys):
     # the device's eps33T 10 % above the model's: the clamped capacitance, and with it the
     # capacitive current C dV/dt that dominates a segment's current, is 10 % larger

@@ -37,6 +37,8 @@ WINDOW_S = 0.1
 MAX_LAG = 8
 #: Residual (%) under which the model is said to match the device.
 MATCH_PCT = 1.0
+#: A residual up to this multiple of the recorded sensor noise's own is that noise, not the model.
+NOISE_EXPLAINS = 1.25
 
 
 def simulate(reader, overrides=()):
@@ -131,6 +133,7 @@ def replay_plant(reader, out: Path, overrides=(), skip_s: float = 0.0) -> dict:
         raise TraceError(f"--skip {skip_s:g}: must be >= 0 and shorter than the "
                          f"{n * reader.block / reader.fs:g} s of the trace compared")
     res = residuals(rec[lag + k0:], sim[k0:n], reader.fs, reader.block, names)
+    res["noise_floor_pct"] = _noise_floor(reader, rec[lag + k0:], names)
     res["t_s"] = res["t_s"] + k0 * reader.block / reader.fs
     rep = {"mode": "plant", "blocks": n - k0, "skip_s": k0 * reader.block / reader.fs,
            "latency_blocks": lag, "recorded_latency_blocks": recorded_lag,
@@ -155,6 +158,23 @@ def replay_plant(reader, out: Path, overrides=(), skip_s: float = 0.0) -> dict:
     return rep
 
 
+def _noise_floor(reader, rec, names):
+    """The residual (%) the recorded device's sensor noise alone gives against noiseless model
+    currents: ``rms(noise) / rms(rec)``, the noise the recorded scene gives its ADC input (V rms)
+    over its shunt. Where the recorded currents are small (a settle tail of 0 V) it nears 100 %:
+    there the residual measures the noise, not the model."""
+    scene = scene_of(reader)
+    sigma = {g.name: g.sense.noise / g.sense.shunt for g in scene.actuator
+             if getattr(g, "sense", None) is not None and getattr(g.sense, "shunt", 0) > 0}
+    s = np.array([sigma.get(name.rsplit(".", 2)[0], 0.0) for name in names])
+    r = rec.astype(float)
+    ok = np.isfinite(r).all(axis=(0, 2))
+    den = np.sum(r[:, ok] ** 2)
+    if den <= 0:
+        return None
+    return float(100 * np.sqrt(np.sum(s[ok] ** 2) * r.shape[0] * r.shape[2] / den))
+
+
 def _line(rep, worst) -> str:
     if rep["residual_pct"] is None:
         return "plant replay: the recorded currents are all zero: nothing to compare"
@@ -169,6 +189,10 @@ def _line(rep, worst) -> str:
     tip = f", tip {rep['tip_residual_pct']:.3g} %" if rep.get("tip_residual_pct") is not None else ""
     if rep["residual_pct"] < MATCH_PCT:
         return f"{head}{tip}: the model matches the device (under {MATCH_PCT:g} %)"
+    floor = rep.get("noise_floor_pct")
+    if floor is not None and rep["residual_pct"] <= NOISE_EXPLAINS * floor:
+        return (f"{head}{tip}: the sensor's noise alone gives {floor:.3g} % over currents this small: the comparison "
+                f"cannot tell the model from the device (compare where they are driven: a shorter --skip)")
     return (f"{head}{tip}: the device differs from the model: its currents are {rep['gain']:.4g} x the model's "
             f"({100 * (rep['gain'] - 1):+.3g} %)")
 
