@@ -327,6 +327,27 @@ def test_a_calibration_of_another_model_of_the_actuator_is_refused(measured, cap
     assert K.read(bare, scene.load(SCENE, ["actuator.lateral.beam.length=0.025"])).factors
 
 
+@pytest.mark.parametrize("change", ["actuator.normal.em.lateral_stiffness=2e4", "actuator.normal.em.tilt_stiffness=0.2",
+                                    "actuator.normal.em.armature_mass=7e-5",
+                                    "actuator.normal.em.armature_inertia=4e-11"])
+def test_a_beam_on_a_carrier_whose_root_changed_is_refused(measured, tmp_path, change):
+    """A beam riding on an electromagnetic actuator (bimodal-4x4) has that actuator's suspension
+    and armature for its root: a calibration of it does not apply once they change, as it does
+    not once the beam's own support changes. The file is the fixture's, moved to the other scene."""
+    s = scene.load("bimodal-4x4")
+    lat = s.group("lateral")
+    doc = {**measured[2], "scene": "bimodal-4x4",
+           "groups": {"lateral": {**measured[2]["groups"]["lateral"], "channels": 16, "model": K.model_of(s, lat)}}}
+    path = K.write(doc, tmp_path / "calibration.json")
+    assert K.read(path, s).factors == doc["groups"]["lateral"]["factors"]
+    # the models' own account: the root the beam is built on moved
+    other = scene.load("bimodal-4x4", [change])
+    assert Models(other).carrier(other.group("lateral")).support_spec() != Models(s).carrier(lat).support_spec()
+    with pytest.raises(RtctlError, match=r"calibrated on another model of the actuator \(support\.carrier\."
+                                         + change.split("=")[0].split(".")[-1]):
+        K.read(path, other)
+
+
 def test_a_relative_path_is_found_beside_the_scene_file(measured, tmp_path):
     s = tmp_path / "s.toml"
     s.write_text(scene.resolve(SCENE).read_text().replace('mode = "open"', 'mode = "open"\ncalibration = "cal.json"'))

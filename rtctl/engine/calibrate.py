@@ -364,6 +364,9 @@ def document(scene, m: Measurement, say=None) -> dict:
 #: The sense chain's keys the model (and so the fit) depends on; its noise, bits and full scale
 #: only set how well the currents are read.
 _SENSE_MODEL = ("shunt", "aa_cutoff", "aa_order")
+#: The keys of a carrying ``em`` group that make a ``support.type = "actuator"`` root
+#: (``EMPlant.support_spec``).
+_CARRIER_MODEL = ("lateral_stiffness", "tilt_stiffness", "armature_mass", "armature_inertia")
 
 
 def model_of(scene, group) -> dict:
@@ -381,7 +384,13 @@ def model_of(scene, group) -> dict:
     used = sorted({layer.material for layer in group.beam.layers})
     # beam.modes is the simulated device's (its plant's truncation), no part of the fitted model
     beam = {k: v for k, v in group.beam.to_dict().items() if k != "modes"}
-    model = {"beam": beam, "support": group.support.to_dict(),
+    support = group.support.to_dict()
+    if group.support.type == "actuator":
+        # the root is the carrier's suspension and armature (Models.carrier): a change there moves
+        # the beam's resonances as much as a change of the beam's own support would
+        em = scene.group(group.support.actuator).em
+        support["carrier"] = {k: em[k] for k in _CARRIER_MODEL}
+    model = {"beam": beam, "support": support,
              "amplifier": group.amplifier.to_dict(), "sense": {k: group.sense[k] for k in _SENSE_MODEL},
              "materials": {n: dataclasses.asdict(mats[n]) for n in used}}
     return strict(model, repr)
