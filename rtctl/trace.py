@@ -420,6 +420,13 @@ class TraceReader:
         raw = p.read_bytes() if p.exists() else b""
         entries = np.frombuffer(raw[: len(raw) // CHUNK.itemsize * CHUNK.itemsize], dtype=CHUNK)
         data = self._map(whole)
+        #: records the index lists in order, read or not: more than the file holds when it was cut
+        #: after its writer closed it (a copy cut short)
+        self.indexed = 0
+        for e in entries:
+            if int(e["first"]) != self.indexed:
+                break
+            self.indexed += int(e["n"])
         n = 0
         for e in entries:
             first, count = int(e["first"]), int(e["n"])
@@ -451,6 +458,11 @@ class TraceReader:
         if self.closed and not self.torn_bytes:
             return f"{head}, closed by its writer, every chunk's checksum holds"
         torn = f"; a torn tail of {self.torn_bytes} bytes ignored" if self.torn_bytes else ""
+        if self.closed and getattr(self, "indexed", 0) > self.n_blocks:
+            # the writer closed it whole: blocks.bin lost its end afterwards, and the blocks lost are known
+            return (f"{head} recovered of the {self.indexed} its writer closed it with: blocks.bin was cut "
+                    f"short after it was written (a copy or a disk that lost its end), "
+                    f"{self.indexed - self.n_blocks} blocks lost{torn}")
         return f"{head} recovered (the writing process ended before closing it){torn}"
 
     @property

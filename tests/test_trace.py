@@ -85,6 +85,17 @@ def test_a_torn_tail_is_ignored_and_said(tmp_path):
     os.close(w._data), os.close(w._index)
 
 
+def test_a_closed_trace_cut_short_afterwards_says_so_and_what_was_lost(tmp_path):
+    w = write(tmp_path, 12, chunk=4)  # closed whole: three chunks of four
+    size = w.dtype.itemsize
+    os.truncate(tmp_path / "blocks.bin", 6 * size + 5)  # a copy that stopped inside the second chunk
+    r = TraceReader(tmp_path)
+    assert r.closed and r.n_blocks == 4 and r.torn_bytes == 2 * size + 5
+    line = r.recovery()
+    assert "process ended before closing" not in line, line  # it did close: the file lost its end later
+    assert "recovered of the 12 its writer closed it with" in line and "8 blocks lost" in line, line
+
+
 def test_a_chunk_failing_its_checksum_ends_what_is_read(tmp_path):
     w = write(tmp_path, 12, chunk=4)
     size = w.dtype.itemsize
