@@ -106,6 +106,22 @@ def test_in_process_sweep_writes_tables_and_plots_and_resumes(capsys, tmp_path):
     assert code == 2 and "holds a sweep with another what" in err
 
 
+def test_another_vary_in_the_same_directory_leaves_no_plot_of_the_first(capsys, tmp_path):
+    out = tmp_path / "s"
+    base = ["line-bimorph-5", "--what", "reach", "--workers", "0", "--out", str(out)]
+    code, _, err = sweep_cli(capsys, *base, "--vary", "finger.preload=[0.49, 1.0]")
+    assert code == 0 and (out / "plot_ruffini.margin_db.png").is_file(), err
+    # one preload: no key varies, so no figure; the two-point figures are not this table's
+    code, _, err = sweep_cli(capsys, *base, "--vary", "finger.preload=[0.49]")
+    assert code == 0 and len(pq.read_table(out / "table.parquet").to_pylist()) == 1, err
+    assert sorted(p.name for p in out.glob("plot_*")) == []
+    # and --no-plot on a plotted directory leaves none behind either
+    sweep_cli(capsys, *base, "--vary", "finger.preload=[0.49, 1.0]")
+    assert any(out.glob("plot_*.png"))
+    code, _, _ = sweep_cli(capsys, *base, "--vary", "finger.preload=[0.49, 1.0]", "--no-plot")
+    assert code == 0 and sorted(p.name for p in out.glob("plot_*")) == []
+
+
 def test_failed_points_are_rows_and_a_resume_retries_them(capsys, tmp_path):
     out = tmp_path / "s"
     # a 1e-7 electrode segment is a valid scene that the beam model refuses (ill-conditioned)

@@ -163,6 +163,11 @@ def sweep(source, vary, what="model", sets=(), out=None, scheduler=None, workers
         from .plots import plot as make_plots
 
         res.plots = make_plots(table, varies, whats, out)
+    # figures of an earlier sweep here (another --vary, or this one plotted before --no-plot)
+    # would sit beside a table they do not show
+    for old in Path(out).glob("plot_*.png"):
+        if old not in res.plots and old.is_file():
+            old.unlink()
     return res
 
 
