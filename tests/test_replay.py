@@ -134,6 +134,20 @@ def test_plant_replay_of_a_settle_tail_is_the_sensor_noise_not_a_device_differen
     assert "differs" not in rep["line"] and "cannot tell the model from the device" in rep["line"], rep["line"]
 
 
+def test_plant_replay_does_not_name_an_idle_channels_noise_as_the_worst_row(tmp_path, capsys):
+    # lateral.4 plays nothing: its recorded currents are the sensor's noise, the model's zero
+    run(scenes.load("line-bimorph-5", ["timing.duration=0.1", "stimulus.tones.4.voltage=0"]), out_dir=tmp_path / "r",
+        plot=False)
+    code, rep, _ = replay(capsys, tmp_path / "r", "--mode", "plant", "--out", tmp_path / "p")
+    rows = {r["row"]: r for r in rep["rows"]}
+    rec = np.asarray(TraceReader(tmp_path / "r" / "trace").records["sensed"], dtype=float)[rep["latency_blocks"]:]
+    i = TraceReader(tmp_path / "r" / "trace").meta["sensed_rows"].index("lateral.4.seg0")
+    assert rows["lateral.4.seg0"]["residual_pct"] == pytest.approx(100, abs=0.1)
+    assert rows["lateral.4.seg0"]["noise_floor_pct"] == pytest.approx(100 * 1e-8 / np.sqrt(np.mean(rec[:, i] ** 2)),
+                                                                      rel=1e-3)
+    assert code == 0 and "matches" in rep["line"] and "worst lateral.4" not in rep["line"], rep["line"]
+
+
 def test_plant_replay_names_a_permittivity_mismatch(tmp_path, capsys):
     # the device's eps33T 10 % above the model's: the clamped capacitance, and with it the
     # capacitive current C dV/dt that dominates a segment's current, is 10 % larger

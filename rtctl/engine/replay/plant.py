@@ -133,7 +133,9 @@ def replay_plant(reader, out: Path, overrides=(), skip_s: float = 0.0) -> dict:
         raise TraceError(f"--skip {skip_s:g}: must be >= 0 and shorter than the "
                          f"{n * reader.block / reader.fs:g} s of the trace compared")
     res = residuals(rec[lag + k0:], sim[k0:n], reader.fs, reader.block, names)
-    res["noise_floor_pct"] = _noise_floor(reader, rec[lag + k0:], names)
+    res["noise_floor_pct"], floors = _noise_floor(reader, rec[lag + k0:], names)
+    for row, floor in zip(res["rows"], floors):
+        row["noise_floor_pct"] = floor
     res["t_s"] = res["t_s"] + k0 * reader.block / reader.fs
     rep = {"mode": "plant", "blocks": n - k0, "skip_s": k0 * reader.block / reader.fs,
            "latency_blocks": lag, "recorded_latency_blocks": recorded_lag,
@@ -143,8 +145,13 @@ def replay_plant(reader, out: Path, overrides=(), skip_s: float = 0.0) -> dict:
         den = np.nansum(rt ** 2)
         rep["tip_residual_pct"] = (float(100 * np.sqrt(np.nansum((tip[k0:] - rt[k0:]) ** 2) / np.nansum(rt[k0:] ** 2)))
                                    if den > 0 else None)
-    worst = max((r for r in res["rows"] if r["residual_pct"] is not None), key=lambda r: r["residual_pct"],
-                default=None)
+    # the worst row the noise does not explain: an idle channel's row (the device's noise against
+    # the model's nothing) is 100 % whatever the model is worth
+    rows = [r for r in res["rows"] if r["residual_pct"] is not None]
+    telling = [r for r in rows
+               if r["noise_floor_pct"] is None or r["residual_pct"] > NOISE_EXPLAINS * r["noise_floor_pct"]]
+    driven = [r for r in rows if r["gain"] is not None]  # else: the model's currents are all zero there
+    worst = max(telling or driven or rows, key=lambda r: r["residual_pct"], default=None)
     rep["line"] = _line(rep, worst)
     rep["exit"] = 0
     out.mkdir(parents=True, exist_ok=True)
@@ -154,25 +161,29 @@ def replay_plant(reader, out: Path, overrides=(), skip_s: float = 0.0) -> dict:
     (out / "replay.json").write_text(json.dumps(rep, indent=1))
     rep["details"] = [f"{r['row']:<24} residual {r['residual_pct']:8.3f} %  phase {r['phase_deg']:+7.2f} deg  "
                       + ("gain - (the model's are zero)" if r["gain"] is None else f"gain {r['gain']:.4f}")
+                      + (" (the sensor's noise)" if r in rows and r not in telling else "")
                       for r in res["rows"] if r["residual_pct"] is not None]
     return rep
 
 
 def _noise_floor(reader, rec, names):
     """The residual (%) the recorded device's sensor noise alone gives against noiseless model
-    currents: ``rms(noise) / rms(rec)``, the noise the recorded scene gives its ADC input (V rms)
-    over its shunt. Where the recorded currents are small (a settle tail of 0 V) it nears 100 %:
-    there the residual measures the noise, not the model."""
+    currents, over all rows and per row: ``rms(noise) / rms(rec)``, the noise the recorded scene
+    gives its ADC input (V rms) over its shunt. Where the recorded currents are small (a settle
+    tail of 0 V, an idle channel) it nears 100 %: there the residual measures the noise, not the
+    model."""
     scene = scene_of(reader)
-    sigma = {g.name: g.sense.noise / g.sense.shunt for g in scene.actuator
-             if getattr(g, "sense", None) is not None and getattr(g.sense, "shunt", 0) > 0}
+    # a bimorph's segment currents pass the sense chain's noise (rtctl.plant.frontend.CurrentSense);
+    # the other groups' sensed rows carry none here
+    sigma = {g.name: g.sense.noise / g.sense.shunt for g in scene.actuator if g.type == "bimorph"}
     s = np.array([sigma.get(name.rsplit(".", 2)[0], 0.0) for name in names])
     r = rec.astype(float)
-    ok = np.isfinite(r).all(axis=(0, 2))
-    den = np.sum(r[:, ok] ** 2)
-    if den <= 0:
-        return None
-    return float(100 * np.sqrt(np.sum(s[ok] ** 2) * r.shape[0] * r.shape[2] / den))
+    r[~np.isfinite(r)] = 0.0  # a dropped record: compared as 0 (residuals)
+    per = r.shape[0] * r.shape[2]
+    den = np.sum(r ** 2, axis=(0, 2))
+    rows = [float(100 * x * np.sqrt(per / d)) if d > 0 else None for x, d in zip(s, den)]
+    total = float(100 * np.sqrt(np.sum(s ** 2) * per / np.sum(den))) if np.sum(den) > 0 else None
+    return total, rows
 
 
 def _line(rep, worst) -> str:
