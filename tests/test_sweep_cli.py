@@ -42,8 +42,13 @@ def sweep_cli(capsys, *args):
      ["point 0", "reach needs a sine tone"]),
     (["line-bimorph-5", "--vary", "io.backend=[sim, audio]", "--what", "run"], ["point 1", "simulated rig"]),
     (["no-such-scene", "--vary", f"{LENGTH}=[0.01]"], ["no-such-scene", "no such scene"]),
+    # one key under two spellings (the group's name, its index): the later would set every point
+    (["line-bimorph-5", "--vary", f"{LENGTH}=[0.015, 0.02]", "--vary", "actuator.0.beam.length=[0.03]"],
+     ["actuator.0.beam.length is already varied", LENGTH]),
+    (["line-bimorph-5", "--vary", "stimulus.tones.4.freq,stimulus.tones.-1.freq=[300]"],
+     ["stimulus.tones.-1.freq is already varied"]),
 ], ids=["spec", "unknown-key", "out-of-range", "index", "what", "workers-and-scheduler", "address", "workers",
-        "no-tone", "run-on-hardware", "scene"])
+        "no-tone", "run-on-hardware", "scene", "alias-name", "alias-negative-index"])
 def test_bad_input_is_one_line_and_status_2(capsys, tmp_path, args, words):
     code, out, err = sweep_cli(capsys, *args, "--out", str(tmp_path / "s"))
     assert code == 2, (out, err)

@@ -38,6 +38,20 @@ class SweepResult:
         return [r for r in self.rows if r["error"] is not None]
 
 
+def _raw(scene_mod, text: str, sets) -> dict | None:
+    """The scene's TOML with the ``--set`` items applied, unvalidated (None when it does not
+    parse: the points' validation then says why)."""
+    import tomllib
+
+    try:
+        data = tomllib.loads(text)
+        for item in sets:
+            scene_mod.apply_override(data, item)
+    except (tomllib.TOMLDecodeError, RtctlError, RecursionError):
+        return None
+    return data
+
+
 def plan(source, varies, whats, sets=()):
     """The scene's text and origin and every point, each validated as ``--set`` values are (a bad
     one raises RtctlError naming the point) and checked against ``whats``."""
@@ -49,7 +63,7 @@ def plan(source, varies, whats, sets=()):
     except (OSError, UnicodeDecodeError) as e:
         raise RtctlError(f"{path}: cannot read: {e}") from None
     origin = str(path)
-    pts = spec.product(varies)
+    pts = spec.product(varies, _raw(scene_mod, text, sets))
     for p in pts:
         try:
             points_mod.check(scene_mod.loads(text, [*sets, *p.overrides], origin), whats)

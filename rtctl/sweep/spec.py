@@ -19,6 +19,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 from dataclasses import dataclass
 
 from ..errors import RtctlError
@@ -155,14 +156,41 @@ def toml_literal(v) -> str:
     raise RtctlError(f"cannot write {_short(v)} as a scene value")
 
 
-def product(varies: list[Vary]) -> list[Point]:
-    """Every combination of the ``--vary`` values, the first ``--vary`` changing slowest."""
+def canonical_key(data, key: str) -> str:
+    """``key`` with each array part as its index from 0 in the raw scene ``data`` (an item's name
+    or a negative index as ``--set`` reads them), so two spellings of one key compare equal:
+    ``actuator.lateral.beam.length`` and ``actuator.-1.beam.length`` are ``actuator.0.beam.length``
+    on a scene of one group. Parts it cannot walk are kept as typed."""
+    parts, node = key.split("."), data
+    for i, part in enumerate(parts):
+        if isinstance(node, list):
+            names = [x.get("name") if isinstance(x, dict) else None for x in node]
+            if re.fullmatch(r"-?[0-9]+", part) and -len(node) <= int(part) < len(node):
+                idx = int(part) % len(node)
+            elif part in names:
+                idx = names.index(part)
+            else:
+                break
+            parts[i], node = str(idx), node[idx]
+        elif isinstance(node, dict) and part in node:
+            node = node[part]
+        else:
+            break
+    return ".".join(parts)
+
+
+def product(varies: list[Vary], data=None) -> list[Point]:
+    """Every combination of the ``--vary`` values, the first ``--vary`` changing slowest. With the
+    raw scene ``data``, keys are compared as :func:`canonical_key` spells them."""
     seen: dict[str, str] = {}
     for v in varies:
         for k in v.keys:
-            if k in seen:
-                raise RtctlError(f"--vary {_short(v.text)}: {k} is already varied by --vary {_short(seen[k])}")
-            seen[k] = v.text
+            # a key varied twice (under two spellings too) would be set by the later --vary at every
+            # point while the table's column of the earlier one named values never computed
+            c = k if data is None else canonical_key(data, k)
+            if c in seen:
+                raise RtctlError(f"--vary {_short(v.text)}: {k} is already varied by --vary {_short(seen[c])}")
+            seen[c] = v.text
     n = math.prod(len(v.values) for v in varies)
     if n > MAX_POINTS:
         sizes = " x ".join(str(len(v.values)) for v in varies)
