@@ -83,6 +83,15 @@ def block_of(at: float, fs: float, block: int) -> int:
     return int(math.floor(x + _SNAP * max(1.0, x)))
 
 
+def duration_blocks(duration: float, fs: float, block: int) -> int:
+    """Blocks a run of ``duration`` seconds lasts: ``ceil(duration * fs / block)``, at least 1, a
+    product within 1e-9 above a whole number of blocks counted as on it (0.07 s at 48 kHz, block
+    32, is 105.00000000000001 blocks in floating point: a 106th block would play past the end of
+    every signal sampled to the duration)."""
+    x = float(duration) * float(fs) / int(block)
+    return max(1, int(math.ceil(x - _SNAP * max(1.0, x))))
+
+
 def schedule(scene: Scene) -> list[Event]:
     """The scene's events in time order, each with its block and the scene after it.
 

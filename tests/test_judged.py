@@ -112,3 +112,17 @@ def test_a_closed_loop_burst_is_judged_against_its_sustained_target(tmp_path):
     assert r["target_um"] == pytest.approx(12.0)
     assert abs(r["error_pct"]) < 2.0 and r["felt"] is True
     assert r["estimated_um"] == pytest.approx(r["true_um"], rel=0.05)
+
+
+def test_a_run_cut_mid_transient_lasts_its_duration_and_is_judged_at_the_peak(tmp_path):
+    # 0.07 s x 48 kHz / 32 is 105.00000000000001 blocks in floating point: a 106th block held the
+    # transient's level at the cut for 32 samples, a "steady stretch" judged at 4 um, not felt
+    body = OPEN + ('signals = [{name = "c", type = "sine", freq = 146.0, amp = 75.0},\n'
+                   '  {name = "e", type = "breakpoints", times = [0.0, 0.0075, 0.03], levels = [0.0, 1.0, 0.0]},\n'
+                   '  {name = "b", type = "product", of = ["c", "e"]}]\n'
+                   'play = [{signal = "b", channel = 0, start = 0.05}]')
+    summary = _summary(body, tmp_path, "cut", 0.07)
+    assert summary["duration_s"] == pytest.approx(0.07, abs=1e-12)
+    row = summary["channels"][0]
+    assert row["judged"]["by"] == "peak"
+    assert row["true_um"] > 10.0 and row["felt"] is True  # the transient's peak, about 15 um

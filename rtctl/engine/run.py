@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _numba, safety
+from ..events import duration_blocks
 from .loop import LATE_FIELD, Loop, fault_message
 from .pace import wake_stats
 
@@ -141,7 +142,7 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     if calibrated is not None and out_dir is None:  # auto's temporary file: the rig has read it
         Path(scene.control.calibration).unlink(missing_ok=True)
     fs, block = rig.fs, rig.block
-    n_blocks = max(1, math.ceil(scene.timing.duration * fs / block))
+    n_blocks = duration_blocks(scene.timing.duration, fs, block)
     if blocks is not None:
         n_blocks = max(1, min(n_blocks, blocks))
     out = Path(out_dir) if out_dir is not None else None

@@ -148,7 +148,7 @@ def context(scene, where: str = SIM, n_sensed: int | None = None, names=None) ->
     """The :class:`Context` of ``scene`` run on ``where`` (``n_sensed``, ``names``: the device's
     sensed rows, and their names, where they are more than the bimorph segments a scene's
     hardware senses: a simulated coil's current comes before a later group's segments)."""
-    from ..events import block_of
+    from ..events import block_of, duration_blocks
     from ..models import n_channels, sensed_layout
 
     rows = list(names) if names is not None else sensed_layout(scene)[0]
@@ -158,7 +158,7 @@ def context(scene, where: str = SIM, n_sensed: int | None = None, names=None) ->
         observed = tuple(i for i, name in enumerate(rows)
                          if scene.group(name.split(".")[0]).type == "bimorph")
     fingers = any(g.type == "bimorph" or g.type in ("em", "dot", "solenoid") for g in scene.actuator)
-    return Context(where, max(1, math.ceil(scene.timing.duration * fs / blk)),
+    return Context(where, duration_blocks(scene.timing.duration, fs, blk),
                    len(rows) if n_sensed is None else int(n_sensed),
                    sum(n_channels(g) for g in scene.actuator), observed, fingers and bool(scene.finger.contact),
                    int(scene.io.xrun_limit), max(1, block_of(scene.io.xrun_window, fs, blk)),
