@@ -96,11 +96,12 @@ def check(scene) -> None:
     voices = []
     if scene.stimulus.play:
         from .dsp._kernels import MAX_RAMP  # a constant: importing compiles nothing
+        from .events import duration_blocks
         from .voices import build
 
-        fs = float(scene.timing.fs)
-        voices = build(scene, offsets, fs, float(round(scene.timing.duration * fs)), MAX_RAMP,
-                       int(scene.timing.block))
+        fs, block = float(scene.timing.fs), int(scene.timing.block)
+        voices = build(scene, offsets, fs, float(duration_blocks(scene.timing.duration, fs, block) * block), MAX_RAMP,
+                       block)
     check_control(scene, voices)
 
 
@@ -353,10 +354,14 @@ class Stimulus:
     def _add_voices(self, scene, offsets, tones, chans, freqs, phases) -> None:
         """``stimulus.play``: one bank tone per voice (:mod:`rtctl.voices`), with its schedule."""
         from .dsp._kernels import MAX_RAMP
+        from .events import duration_blocks
         from .voices import build, schedule, target_schedule
 
-        n_run = float(round(scene.timing.duration * self.fs))
-        n_blocks = int(math.ceil(n_run / self.block))
+        # the run plays whole blocks: the voices go on to its last sample, so that its last block
+        # plays the signals as defined, not their level at the duration held (a held level reads as
+        # a steady stretch, rtctl.engine.judged)
+        n_blocks = duration_blocks(scene.timing.duration, self.fs, self.block)
+        n_run = float(n_blocks * self.block)
         self.voices = build(scene, offsets, self.fs, n_run, MAX_RAMP, self.block)
         for v, closed, receptor in self.voices:
             i = len(freqs)

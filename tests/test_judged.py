@@ -114,15 +114,29 @@ def test_a_closed_loop_burst_is_judged_against_its_sustained_target(tmp_path):
     assert r["estimated_um"] == pytest.approx(r["true_um"], rel=0.05)
 
 
+
+# a transient of 75 V at 146 Hz from 0.05 s, up in 7.5 ms and down by 0.08 s: its tip peaks near 15 um
+TRANSIENT = OPEN + ('signals = [{name = "c", type = "sine", freq = 146.0, amp = 75.0},\n'
+                    '  {name = "e", type = "breakpoints", times = [0.0, 0.0075, 0.03], levels = [0.0, 1.0, 0.0]},\n'
+                    '  {name = "b", type = "product", of = ["c", "e"]}]\n'
+                    'play = [{signal = "b", channel = 0, start = 0.05}]')
+
+
 def test_a_run_cut_mid_transient_lasts_its_duration_and_is_judged_at_the_peak(tmp_path):
     # 0.07 s x 48 kHz / 32 is 105.00000000000001 blocks in floating point: a 106th block held the
     # transient's level at the cut for 32 samples, a "steady stretch" judged at 4 um, not felt
-    body = OPEN + ('signals = [{name = "c", type = "sine", freq = 146.0, amp = 75.0},\n'
-                   '  {name = "e", type = "breakpoints", times = [0.0, 0.0075, 0.03], levels = [0.0, 1.0, 0.0]},\n'
-                   '  {name = "b", type = "product", of = ["c", "e"]}]\n'
-                   'play = [{signal = "b", channel = 0, start = 0.05}]')
-    summary = _summary(body, tmp_path, "cut", 0.07)
+    summary = _summary(TRANSIENT, tmp_path, "cut", 0.07)
     assert summary["duration_s"] == pytest.approx(0.07, abs=1e-12)
     row = summary["channels"][0]
     assert row["judged"]["by"] == "peak"
-    assert row["true_um"] > 10.0 and row["felt"] is True  # the transient's peak, about 15 um
+    assert row["true_um"] > 10.0 and row["felt"] is True
+
+
+def test_the_samples_past_a_duration_of_part_of_a_block_play_the_signal_on(tmp_path):
+    # 0.0701 s is 105.15 blocks: the run plays 106, 27 samples past the duration; a signal that
+    # stopped there held its level at the duration, judged as a steady stretch (4 um, not felt)
+    summary = _summary(TRANSIENT, tmp_path, "part", 0.0701)
+    assert summary["duration_s"] == pytest.approx(106 * 32 / FS, abs=1e-12)
+    row = summary["channels"][0]
+    assert row["judged"]["by"] == "peak" and row["judged"]["active_s"][1] == pytest.approx(106 * 32 / FS)
+    assert row["true_um"] > 10.0 and row["felt"] is True
