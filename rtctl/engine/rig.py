@@ -198,8 +198,9 @@ class Rig:
         """Self-sensing observers on the scene's tone frequencies: one stage per bimorph group.
         Under closed-loop control each channel's lock-in window holds whole periods of its own
         tones only (a 250 Hz channel is not made to wait for a 2 Hz one); else the window holds
-        whole periods of every tone of the group."""
-        from ..selfsense.rt import prefilter_cutoffs, short_windows
+        whole periods of every tone of the group, or, where no window within 1 s does, each
+        channel reads over its own as under closed loop."""
+        from ..selfsense.rt import block_window, holds_whole_periods, prefilter_cutoffs, short_windows
         from ..selfsense.stage import ObserverStage
 
         self.latency = scene.io.latency_blocks or int(self.device.latency_blocks)
@@ -214,7 +215,12 @@ class Rig:
                        for c in range(ch0, c1)]
                 width = max(1, max(len(p) for p in per))
                 freqs = np.array([p + [0.0] * (width - len(p)) for p in per])
-                window, lstsq, hop = (short_windows(freqs, self.fs, self.block) if self.closed
+                # open loop: the group's one window of whole periods, unless none within its 1 s
+                # bound holds them (3.3 Hz: 3.3 s), where a lock-in over it leaks (that tone read
+                # 50 % high): then each channel's own, by least squares where it must
+                window, lstsq, hop = (short_windows(freqs, self.fs, self.block)
+                                      if self.closed or not holds_whole_periods(freqs, block_window(
+                                          freqs, self.fs, self.block)[0], self.fs)
                                       else (None, False, None))
                 obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[ch0:c1],
                                            window=window, hop=hop, lstsq=lstsq,
