@@ -296,3 +296,27 @@ def test_the_sma_scene_runs_over_serial_within_its_duty_bound(emulator, tmp_path
     limited = {c["name"]: c["limited_by"] for c in s["channels"] if c["limited"]}
     assert not s["faults"] and s["io"]["frames_acked"] > 0
     assert limited == {"sma.0": ["duty"]}, limited
+
+
+@pytest.mark.parametrize("args, why", [
+    (["--chunk-ms", "1e9"], "--chunk-ms = 1000000000.0: must be at most 100 ms"),
+    (["--fs", "1e12"], "--fs = 1000000000000.0: must be in [1000, 384000] Hz"),
+    (["--fs", "100"], "--fs = 100.0: must be in [1000, 384000] Hz"),
+    (["--garbage-every", "-2"], "--garbage-every = -2: must be a count >= 0"),
+    (["--drop-byte-every", "-1"], "--drop-byte-every = -1: must be a count >= 0"),
+    (["--corrupt-every", "-1"], "--corrupt-every = -1: must be a count >= 0"),
+])
+def test_the_emulator_refuses_a_bad_option_in_one_line(args, why, monkeypatch):
+    # before: a chunk or rate this large asked numpy for 119 GiB (an internal error), and a
+    # negative count was taken as 0 (no fault injected) without a word
+    from rtctl.emulate import serial as emu
+    from rtctl.errors import RtctlError
+
+    def serve(*_):  # an option taken: the emulator would serve until killed
+        pytest.fail(f"{args} accepted")
+
+    monkeypatch.setattr(emu, "serve", serve)
+    monkeypatch.setattr(emu.Firmware, "compile", lambda self: None)
+    with pytest.raises(RtctlError) as e:
+        emu.main(["dot-4x4", *args])
+    assert str(e.value).startswith(why)

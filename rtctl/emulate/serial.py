@@ -49,6 +49,7 @@ import numpy as np
 
 from ..errors import RtctlError
 from ..io import protocol as P
+from ..schema import SCENE
 
 FIRMWARE = (1, 0)
 #: SMA pin states: up above +this height, down below -this (m): half the unpowered raised and
@@ -411,6 +412,17 @@ def main(argv: list[str] | None = None) -> int:
     for name, v in (("--fs", a.fs), ("--chunk-ms", a.chunk_ms), ("--pulse-ms", a.pulse_ms)):
         if not (v > 0 and math.isfinite(v)):
             raise RtctlError(f"{name} = {v!r}: must be a positive number")
+    # the plant's buffers are a chunk long (--fs 1e12 asked for 119 GiB), and a chunk is computed
+    # between two polls: one longer than the lag the loop catches up would stall every answer
+    fs_key = SCENE.keys["timing"].keys["fs"]
+    if not fs_key.lo <= a.fs <= fs_key.hi:
+        raise RtctlError(f"--fs = {a.fs!r}: must be in [{fs_key.lo:g}, {fs_key.hi:g}] Hz (the range of timing.fs)")
+    if a.chunk_ms > _MAX_LAG_S * 1e3:
+        raise RtctlError(f"--chunk-ms = {a.chunk_ms!r}: must be at most {_MAX_LAG_S * 1e3:g} ms")
+    for name, v in (("--drop-byte-every", a.drop_byte_every), ("--garbage-every", a.garbage_every),
+                    ("--corrupt-every", a.corrupt_every)):
+        if v < 0:
+            raise RtctlError(f"{name} = {v}: must be a count >= 0 (0: never)")
     for name, v in (("--settle-ms", a.settle_ms), ("--stall-after", a.stall_after)):
         if v is not None and not 0 <= v < math.inf:  # written so that NaN fails too
             raise RtctlError(f"{name} = {v!r}: must be a finite number >= 0")
