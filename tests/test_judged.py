@@ -140,3 +140,23 @@ def test_the_samples_past_a_duration_of_part_of_a_block_play_the_signal_on(tmp_p
     row = summary["channels"][0]
     assert row["judged"]["by"] == "peak" and row["judged"]["active_s"][1] == pytest.approx(106 * 32 / FS)
     assert row["true_um"] > 10.0 and row["felt"] is True
+
+
+def test_a_saturated_transient_claims_no_amplitude_its_tip_never_reached(tmp_path):
+    # heartbeat.ahap on the closed-loop scene, cut at 0.9 s: its swell saturates at its tone's
+    # share of max_voltage. The row's estimate is the highest since the onset (16 um, a
+    # transient's ring), which the table printed as "saturated at max_voltage: reaches 16.1 um"
+    # where the tip never passed 9.5 um
+    import numpy as np
+
+    from rtctl.play import pattern_scene
+    from rtctl.trace import TraceReader
+
+    pattern = scene.resolve("line-bimorph-5").parent / "patterns" / "heartbeat.ahap"
+    s, _ = pattern_scene(str(pattern), "line-bimorph-5-closed", (), 0.9)
+    res = run(s, out_dir=str(tmp_path / "hb"), plot=False, progress=False)
+    row = res.summary["channels"][0]
+    assert row["judged"]["by"] == "peak" and row["saturated"]
+    tip = np.abs(TraceReader(tmp_path / "hb" / "trace").signal("tip_um", 0)).max()
+    reach = row.get("reachable_um")
+    assert reach is None or reach <= 1.05 * tip, (reach, tip)

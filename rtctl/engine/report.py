@@ -275,7 +275,12 @@ def _control(rig, rows) -> None:
             n2 = (row.get("noise_um") or 0.0) ** 2 + (1e6 * rig.control_noise.get(int(ctl.index[BANK, j]), 0.0)) ** 2
             row["noise_um"] = math.sqrt(n2)
             row.setdefault("command_v", {})[int(ctl.index[BANK, j])] = float(ctl.state[CMD, j])
-            if sat:  # what the estimate shows at the cap (the run's final window), else the last one used
+            if sat and (row.get("judged") or {}).get("by", "steady") != "steady":
+                # a played signal judged at its peak: its row holds its highest estimate since the
+                # onset (a transient's ring read 16 um where the tip reached 9.5), and the final
+                # state its tones' estimates after they ended (0): neither is what the cap reaches
+                row["reachable_um"] = None
+            elif sat:  # what the estimate shows at the cap (the run's final window), else the last one used
                 est = row.get("estimated_um")
                 e = float(ctl.state[EST, j])  # NaN while a non-finite reading is in the window
                 # (the last estimate used only where the trace's were not finite; with no window
