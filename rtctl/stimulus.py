@@ -69,6 +69,16 @@ class Tone:
     shape: str = "sine"       # sine (oscillator bank) | square | pulse (pulse trains)
 
 
+def channel_offsets(scene) -> dict:
+    """Each actuator group's first channel, the rig's numbering: groups one after another."""
+    from .models import n_channels
+
+    offsets, n = {}, 0
+    for g in scene.actuator:
+        offsets[g.name], n = n, n + n_channels(g)
+    return offsets
+
+
 def check(scene) -> None:
     """Refuse what building ``scene``'s stimulus would refuse, in the same one line, without
     building plants, banks or kernels: its tones' combinations, and its signals compiled and put
@@ -87,11 +97,7 @@ def check(scene) -> None:
     if scene.stimulus.kind != "tones":
         check_control(scene, [])
         return
-    from .models import n_channels
-
-    offsets, n = {}, 0
-    for g in scene.actuator:  # the rig's channel numbering: groups one after another
-        offsets[g.name], n = n, n + n_channels(g)
+    offsets = channel_offsets(scene)
     _check_tones(scene, offsets)
     voices = []
     if scene.stimulus.play:
@@ -154,9 +160,7 @@ def _one_reader_per_channel(scene, voices) -> None:
     voices, the frequencies the rig's observers are built on."""
     from .models import n_channels
 
-    offsets, ch0 = {}, 0
-    for g in scene.actuator:
-        offsets[g.name], ch0 = ch0, ch0 + n_channels(g)
+    offsets = channel_offsets(scene)
     held: dict[int, list] = {}
     for t in scene.stimulus.tones:
         if t.shape == "sine" and t.beat > 0:

@@ -273,8 +273,8 @@ class Rig:
             gains = np.array([np.abs(obs.beam.response(f, load)["tip"]) for load in loads]) / amp
             top = gains.max(axis=0)
             ring = int(np.ceil(self.models.ring_time(g) * self.fs / self.block))
-            # each tone waits for its own channel's window and its low-pass's memory, in whole blocks
-            window = -(-(obs.windows + obs.prefilter_memory)[c_] // self.block)
+            # each tone waits for its own channel's window and its low-pass's memory
+            window = self._window_blocks(obs, c_)
             rise = int(round(scene.control.rise_s * self.fs / self.block))
             beat, tau = self.models.nearest_modes(g, f)  # in turns per block and blocks
             beside = (beat * self.block / self.fs, tau * self.fs / self.block)
@@ -347,9 +347,12 @@ class Rig:
         for _, st, _, c0 in self.observers:
             c = ch - c0
             if 0 <= c < st.observer.n_channels:
-                obs = st.observer
-                return self.latency + int(-(-(obs.windows[c] + obs.prefilter_memory[c]) // self.block)) + 1
+                return self.latency + int(self._window_blocks(st.observer, c)) + 1
         return None
+
+    def _window_blocks(self, obs, c):
+        """Observer channel(s) ``c``'s lock-in window and low-pass memory, in whole blocks."""
+        return -(-(obs.windows + obs.prefilter_memory)[c] // self.block)
 
     def hold_control(self) -> None:
         """A requested stop: every amplitude controller holds its command from now on, so
