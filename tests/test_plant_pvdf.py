@@ -11,6 +11,7 @@ from scipy.integrate import dblquad
 from scipy.signal import dlsim, find_peaks, hilbert
 
 from rtctl.errors import ModelError
+from rtctl.plant import pvdf
 from rtctl.plant.finger import MaxwellLoad
 from rtctl.plant.lti import c2d
 from rtctl.plant.pvdf import PvdfGroup, PvdfPlate
@@ -207,6 +208,53 @@ def test_kernel_matches_naive_twin(small, finger):
         np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-11 * np.max(np.abs(want)))
     for got, want in zip((g.args[7], g.args[8], g.args[9]), (Z, G, V)):
         np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-11 * np.max(np.abs(want)))
+
+
+def idle_drive(n, rng):
+    """Most cells undriven; cell 19 plays, cell 21 (in cell 19's tiles) gets one tiny kick whose
+    ring decays to exact zero, cell 5 starts and stops, cell 33 starts late."""
+    t = np.arange(n) / FS
+    u = np.zeros((48, n))
+    u[19] = 250.0 * np.sin(2 * np.pi * 100.0 * t)
+    u[21, 3] = 1e-185
+    u[5, 600:900] = rng.normal(scale=30.0, size=300)
+    u[33, 2500:] = 50.0 * np.sin(2 * np.pi * 300.0 * t[2500:])
+    return u
+
+
+@pytest.mark.parametrize("finger", [None, FINGER], ids=["bare", "finger"])
+def test_undriven_cells_left_out_match_naive_twin(small, finger):
+    # cells at rest and undriven are not stepped and their tiles not run: against the twin, which
+    # steps every cell, through a cell going quiet beside a driven one and cells waking up
+    p = small if finger is None else PvdfPlate(max_mode_hz=2000.0, finger=finger, preload=0.1)
+    g = PvdfGroup(p, FS, currents=True, max_block=32)
+    u = idle_drive(4800, np.random.default_rng(7))
+    quiet = g.args[pvdf._QUIET]
+    run(g, u[:, :32])
+    assert quiet[21] == 0 and quiet[0] == 1   # kicked: stepped; never driven: left out
+    want_t, want_s, want_p, (Z, G, V) = naive_pvdf.pvdf_group(g, u[:, 32:], 1)
+    truth, sensed, probe = run(g, u[:, 32:], split=32)
+    assert quiet[21] == 1 and quiet[19] == 0 and quiet[33] == 0  # the kick rang out to exact zero
+    # the contract the left-out tiles rest on: a quiet cell's sources hold exact zeros (its last
+    # live chunk's ring is ~1e-195 there, under any output's rounding, but not zero)
+    n_e, nc, X, Y2 = g.args[0][5], 48, g.args[pvdf._QUIET + 3], g.args[pvdf._QUIET + 5]
+    for j in np.flatnonzero(quiet):
+        assert not X[n_e + j::nc][:5].any() and not Y2[j].any()
+    for got, want in ((truth, want_t), (sensed, want_s), (probe, want_p)):
+        np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-11 * np.max(np.abs(want)))
+    for got, want in zip((g.args[7], g.args[8], g.args[9]), (Z, G, V)):
+        np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-11 * np.max(np.abs(want)))
+
+
+def test_undriven_cells_left_out_bitwise(plate):
+    # the tiles left out hold exact zeros: the same outputs, bit for bit, as every tile run
+    u = idle_drive(3200, np.random.default_rng(8))
+    g1 = PvdfGroup(plate, FS, currents=True, max_block=32)
+    g2 = PvdfGroup(plate, FS, currents=True, max_block=32)
+    for k in pvdf._CELLS:
+        g2.args[k][:] = -1                    # every source read, as if no cell were quiet
+    for got, want in zip(run(g1, u, split=32), run(g2, u, split=32)):
+        assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
 
 
 @given(splits=st.lists(st.integers(1, 90), min_size=1, max_size=12))

@@ -21,7 +21,9 @@ twice the samples: half the tiles, each of twice the length (a tile's fixed cost
 time at 32 samples). The differences
 ``u - v`` and ``v - y`` are sources of their own so that the cell current's ``C_f w_a (u - v)``
 and the residual acceleration ``w_r^2 (v - y)`` are not formed from two large products that
-cancel.
+cancel. A cell at rest (its state exactly 0) and undriven over a chunk is not stepped, and every
+tile that reads nothing but such cells is left out: exact zeros, bitwise the same outputs (a
+plate with 2 of its 48 cells driven spent 60 % of its time on the other 46).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from __future__ import annotations
 import math
 
 from rtctl._numba import TINY, kernel
-from rtctl.plant._kernels import lti_outputs
+from rtctl.plant._kernels import lti_outputs_live
 
 STATUS_OK = 0
 STATUS_NONFINITE = 2
@@ -82,7 +84,8 @@ def _recurse(zi, pi, L, Gg, Gp, alpha, Z, G, P, E, nb):
 
 @kernel
 def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, oplan, ocoef,
-                       rplan, rcoef, zeros, P, X, ys, Y2, ys2, probe, drive, sensed, truth):
+                       rplan, rcoef, qcell, ocell, rcell, quiet, zeros, P, X, ys, Y2, ys2, probe,
+                       drive, sensed, truth):
     """Advance one plate with all its PVDF cells by one block (``PvdfGroup``'s kernel).
 
     Parameters
@@ -109,6 +112,14 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
         truncated modes' static displacement ``Rd`` over ``Y2 = [y | y']`` (``ys2``: the
         displacement terms in its first ``nb`` columns, the velocity terms in the next ``nb``;
         one product over twice the samples, added to ``ys``'s rows when they are copied out).
+    qcell, ocell, rcell : ndarray of int64, shape (n_tiles, 8)
+        The cell of each source of each tile of the three plans (-1: the modes and amplified
+        projections, read always).
+    quiet : ndarray of int64, shape (n_channels,)
+        1 where the cell's rows of ``X`` and ``Y2`` hold zeros: a cell at rest (state exactly 0)
+        and undriven over a chunk is not stepped, and the tiles that read nothing but such cells
+        are left out (:func:`~rtctl.plant._kernels.lti_outputs_live`), bitwise the same outputs.
+        A plate of 48 cells with two driven spends most of its product on the other 46.
     zeros : ndarray
         At least ``max(3 n_channels + 1 + n_probe, n_p + 1, 2 max_block)`` zeros (the tiles'
         feedthrough and its input).
@@ -150,10 +161,27 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
     for start in range(0, n, blk):
         nb = min(blk, n - start)
         for j in range(nc):
-            _copy(drive, j, start, X, x_u + j, 0, nb)
-        lti_outputs(qplan, qcoef, zeros, X, zeros, 0, P, nb)
+            rest = V[j, 0] == 0.0 and V[j, 1] == 0.0 and V[j, 2] == 0.0
+            for t in range(nb):
+                if drive[j, start + t] != 0.0:  # (NaN too)
+                    rest = False
+                    break
+            if rest:
+                if quiet[j] == 0:  # its rows still hold its last samples
+                    for r in range(5):
+                        for t in range(blk):
+                            X[n_e + r * nc + j, t] = 0.0
+                    for t in range(2 * blk):
+                        Y2[j, t] = 0.0
+                    quiet[j] = 1
+            else:
+                quiet[j] = 0
+                _copy(drive, j, start, X, x_u + j, 0, nb)
+        lti_outputs_live(qplan, qcoef, zeros, X, zeros, 0, P, nb, qcell, quiet)
         _recurse(zi, pi, L, Gg, Gp, alpha, Z, G, P, X, nb)
         for j in range(nc):
+            if quiet[j] != 0:
+                continue  # at rest, undriven: stays exactly 0 (R 0 + r 0)
             v = V[j, 0]
             y = V[j, 1]
             w = V[j, 2]
@@ -174,8 +202,8 @@ def pvdf_group_process(sizes, zi, pi, L, Gg, Gp, consts, Z, G, V, qplan, qcoef, 
             V[j, 0] = v if abs(v) >= TINY else 0.0
             V[j, 1] = y if abs(y) >= TINY else 0.0
             V[j, 2] = w if abs(w) >= TINY else 0.0
-        lti_outputs(oplan, ocoef, zeros, X, zeros, 0, ys, nb)
-        lti_outputs(rplan, rcoef, zeros, Y2, zeros, 0, ys2, 2 * nb)
+        lti_outputs_live(oplan, ocoef, zeros, X, zeros, 0, ys, nb, ocell, quiet)
+        lti_outputs_live(rplan, rcoef, zeros, Y2, zeros, 0, ys2, 2 * nb, rcell, quiet)
         for j in range(nc):
             for t in range(nb):
                 truth[j, 0, start + t] = ys[j, t] + ys2[j, t]

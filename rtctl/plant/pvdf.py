@@ -55,6 +55,8 @@ PROBE_NAMES = (("probe_displacement", "m"), ("probe_velocity", "m/s"),
 pvdf_group_process = _k.pvdf_group_process
 
 _Z, _G, _V = 7, 8, 9  # positions of the states in PvdfGroup.args
+_CELLS = (16, 17, 18)  # the plans' cells of each tile source (-1: always read)
+_QUIET = 19  # which cells' sources are all zero (not stepped, their tiles left out)
 
 
 def _pos(name, value):
@@ -635,6 +637,11 @@ class PvdfGroup:
             np.zeros(n_p + 1),            # G: amplified projections (+ dummy)
             np.zeros((nc, 3)),            # V: per cell voltage and residual mode (v, y, y')
             qplan, qcoef, oplan, ocoef, rplan, rcoef,
+            # the cell each tile's sources belong to (-1: e), and which cells' sources are zero
+            np.where(qplan[:, 5:] >= n_e, (qplan[:, 5:] - n_e) % nc, -1),
+            np.where(oplan[:, 5:] >= n_e, (oplan[:, 5:] - n_e) % nc, -1),
+            rplan[:, 5:].copy(),
+            np.ones(nc, dtype=np.int64),  # quiet: every cell's rows start as zeros
             np.zeros(max(n_out, n_p + 1, 2 * mb)),
             aligned_zeros((n_p + 1, mb)),  # P: projections of a chunk (last row stays 0)
             aligned_zeros((n_src, mb)),    # X: the sources of a chunk
