@@ -114,7 +114,7 @@ def _let_go(col, y, r, a):
     col[HIGH] = col[HIGH] + 1 if high else 0.0
     if not high:
         if col[PREVY] > 0:
-            col[RIPPLE] = max(abs(y - col[PREVY]), RIPPLE_DECAY * rip)
+            col[RIPPLE] = max(col[PREVY] - y, RIPPLE_DECAY * rip)
         if abs(y / r - 1) <= AGREE:
             col[ANCHOR] = y
         elif y < r and a >= col[AMAX]:  # saturated under the target: a rise counts from the target
