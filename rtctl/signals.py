@@ -260,7 +260,12 @@ class Signals:
             if d is None:
                 return out, None
             end = max(end, t + d)
-            t = max(0.0, t + d + gap)
+            if d + gap < 0 and j < len(ops) - 1:
+                # the next item would start before this one: the order written is not the order
+                # played (an overlap up to this item's whole length still keeps it)
+                raise self._fail(name, "gap", s["gap"], f"an overlap longer than {o!r} "
+                                 f"({d / self.fs:g} s): the item after it would start before it")
+            t = t + d + gap
         return out, end
 
     def _duration(self, name, s, need=False):

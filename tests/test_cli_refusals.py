@@ -211,3 +211,19 @@ def test_the_readme_writes_as_required_only_options_the_help_requires():
         assert written <= needed, (row, written - needed, usage)
         checked.append(" ".join(cmd))
     assert "render" in checked and "sweep" in checked, checked
+
+
+def test_check_and_run_refuse_an_overlap_longer_than_the_item_before(tmp_path):
+    from rtctl import scene
+
+    base = scene.resolve("line-bimorph-5").read_text().split("[stimulus]")[0]
+    f = tmp_path / "overlap.toml"
+    f.write_text(base + '[stimulus]\nkind = "tones"\nsignals = [\n'
+                 '  {name = "a", type = "sine", freq = 200.0, duration = 0.03},\n'
+                 '  {name = "ab", type = "sequence", of = ["a", "a"], gap = -0.05},\n'
+                 ']\nplay = [{signal = "ab", channel = 3}]\n')
+    words = (f"{f}: stimulus.signals.1.gap = -0.05: an overlap longer than 'a' (0.03 s): the item after it would "
+             "start before it (signal 'ab')")
+    _refused(["check", str(f)], words)
+    _refused(["run", str(f), "--duration", "0.1", "--quiet", "--no-plot", "--out", str(tmp_path / "r")], words)
+    assert not (tmp_path / "r" / "trace").exists()

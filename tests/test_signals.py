@@ -284,6 +284,35 @@ def test_bad_signals_are_refused_in_one_line(stim, words):
     assert words in msg and "\n" not in msg
 
 
+OVERLAP = """
+ramp = 0.005
+signals = [
+  {name = "a", type = "sine", freq = 200.0, duration = 0.03},
+  {name = "b", type = "sine", freq = 300.0, duration = 0.03},
+  {name = "ab", type = "sequence", of = ["a", "b"], gap = GAP},
+  {name = "aaa", type = "repeat", of = ["a"], count = 3, gap = GAP},
+]
+play = [{signal = "PLAY", channel = 3}]
+"""
+
+
+@pytest.mark.parametrize("play, index", [("ab", 2), ("aaa", 3)])
+def test_an_overlap_longer_than_the_item_before_is_refused(play, index):
+    """gap = -0.05 s after a 0.03 s item would start the next 0.02 s before it: refused, naming the
+    signal, the gap and the item, not clamped to the sequence's start; gap = -0.03 s still plays."""
+    with pytest.raises(SceneError) as e:
+        render(OVERLAP.replace("GAP", "-0.05").replace("PLAY", play), duration=0.1)
+    msg = str(e.value)
+    assert "\n" not in msg
+    assert msg.endswith(f"stimulus.signals.{index}.gap = -0.05: an overlap longer than 'a' (0.03 s): the item "
+                        f"after it would start before it (signal {play!r})"), msg
+    # gap = -duration, the longest overlap there is, plays: the next item starts with the one before
+    out, _ = render(OVERLAP.replace("GAP", "-0.03").replace("PLAY", "ab"), duration=0.1)
+    n = out.shape[1]
+    env = level(n, *stages([(0, 0.0), (240, 1.0), (1200, 1.0), (1440, 0.0)]))
+    close(out[3], env * (cosine(n, const(200.0), 0.0) + cosine(n, const(300.0), 0.0)), 2.0)
+
+
 def test_tone_scenes_build_the_bank_they_always_did():
     """A scene without stimulus.play: the same tones, phases and schedule as before signals."""
     s = scene.load("line-bimorph-5")
