@@ -371,7 +371,10 @@ def _run_scene(s, out, args) -> int:
         if cal:
             scale = ", ".join(f"{g} within {u:.2g} %" for g, u in cal["uncertainty_pct"].items())
             print(f"models calibrated by {cal['file']} (amplitude scale: {scale})")
-        print(f"trace, summary.json{'' if args.no_plot else ' and plot.png'} in {out}")
+        # name plot.png only when this run left one: --no-plot, a plot that failed to write (a full
+        # disk) or a run with no blocks to plot leaves none (an earlier run's is removed first)
+        plotted = os.path.isfile(os.path.join(out, "plot.png"))
+        print(f"trace, summary.json{' and plot.png' if plotted else ''} in {out}")
     for msg in result.summary["faults"]:
         print(f"rtctl: fault: {msg}", file=sys.stderr)
     if result.interrupted:

@@ -246,3 +246,20 @@ def test_check_trace_of_no_trace_says_it_once(tmp_path):
     with pytest.raises(TraceUnreadable) as e:
         check_trace(tmp_path / "nonexist")
     assert str(e.value).count("not a readable rtctl trace") == 1, str(e.value)
+
+
+def test_the_command_line_names_no_plot_that_a_full_disk_kept_from_being_written(tmp_path, monkeypatch, capsys):
+    from rtctl.engine import report
+
+    def full(summary, reader, path, *a, **kw):
+        path.write_bytes(b"\x89PNG")  # the part written before the disk filled
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(report, "plot", full)
+    out = tmp_path / "r"
+    rc = cli.main(["run", "line-bimorph-5", "--duration", "0.05", "--out", str(out), "--quiet"])
+    stdout = capsys.readouterr().out.splitlines()
+    assert rc == 0
+    assert f"trace, summary.json in {out}" in stdout, stdout
+    assert not (out / "plot.png").exists()
+    assert "plot.png not written: no space left on device" in json.loads((out / "summary.json").read_text())["warnings"]
