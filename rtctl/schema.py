@@ -372,8 +372,9 @@ SIGNAL = Table(
         "direction": Key("str", "out", "", "fade: out (1 -> 0, exp(-t / tau)) or in (0 -> 1, the charging curve)",
                          choices=("in", "out")),
         "of": Key("strs", (), "", "sum, product, sequence, repeat: the signals they combine, by name"),
-        "gap": Key("float", 0.0, "s", "sequence, repeat: silence between items (negative: overlap)", -86400.0,
-                   86400.0),
+        "gap": Key("float", 0.0, "s",
+                   "sequence, repeat: silence between items (negative: overlap, at most the item before)",
+                   -86400.0, 86400.0),
         "count": Key("int", 2, "", "repeat: how many times", 1, 100000),
     },
     "named signals (docs/stimulus.md): sources, envelopes and their sums, products and sequences; "
