@@ -126,6 +126,8 @@ def channel_rows(rig, reader, n_run_blocks: int) -> list[dict]:
             "limited": bool(rig.limiter.counts[:, ch].sum() > 0),
             "limited_by": limited_by(rig.limiter, ch),
         }
+        if len(tones) > 1:  # each tone's frequency (a beat pair's carrier): freqs_hz has a pair's two sines
+            row["tones_hz"] = [tn.freq for tn in tones]
         voices = played_voices(rig, ch)
         span = judged_span(voices, n) if voices and n else None
         if span is not None:  # a played signal: judged over its own stretch, not the run's end
@@ -394,11 +396,15 @@ def print_table(summary: dict) -> None:
     print(f"{summary['scene']}: {summary['duration_s']:g} s at {summary['fs']:g} Hz, block {summary['block']}, "
           f"real-time factor {summary['realtime_factor']:.1f}, block time p99 "
           f"{summary['block_time_us']['p99']:.1f} us, deadline misses {summary['deadline_misses']}")
-    head = f"{'channel':<12}{'receptor':<10}{'freq Hz':>9}{'V peak':>8}{'true um':>10}{'thresh um':>10}" \
+    # a channel of several tones lists them all ("40+250"); the column widens only for such a list
+    freqs = [_fmt(r["freq_hz"], ".1f") if not r.get("tones_hz") else "+".join(f"{f:g}" for f in r["tones_hz"])
+             for r in summary["channels"]]
+    w = max([9] + [len(f) + 1 for f in freqs])
+    head = f"{'channel':<12}{'receptor':<10}{'freq Hz':>{w}}{'V peak':>8}{'true um':>10}{'thresh um':>10}" \
            f"{'target um':>10}{'error %':>9}{'settle ms':>10}  felt"
     print(head)
     print("-" * len(head))
-    for r in summary["channels"]:
+    for r, freq in zip(summary["channels"], freqs):
         felt = {None: "-", True: "yes", False: "NO" if r["contact"] else "NO (no contact)"}[r["felt"]]
         if r.get("saturated"):
             reach = r.get("reachable_um")
@@ -412,7 +418,7 @@ def print_table(summary: dict) -> None:
         if r.get("at_floor"):
             note += (f" (held at the drive's floor for {r['floor_s']:.3g} s: the estimate asked for less than any "
                      "load needs)")
-        print(f"{r['name']:<12}{(r['receptor'] or '-'):<10}{_fmt(r['freq_hz'], '9.1f')}{r['v_peak']:8.1f}"
+        print(f"{r['name']:<12}{(r['receptor'] or '-'):<10}{freq:>{w}}{r['v_peak']:8.1f}"
               f"{_fmt(r['true_um'], '10.3g')}{_fmt(r['threshold_um'], '10.3g')}{_fmt(r['target_um'], '10.3g')}"
               f"{_fmt(r['error_pct'], '9.1f')}{_fmt(r['settle_ms'], '10.0f')}  {felt}{note}")
     for r in summary["channels"]:

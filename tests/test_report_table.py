@@ -1,0 +1,59 @@
+"""The per-channel table ``rtctl run`` prints: a channel of several tones lists every tone's
+frequency (a beat pair is one tone, at its carrier)."""
+
+from __future__ import annotations
+
+import pytest
+
+from rtctl import scene
+from rtctl.engine.report import print_table
+from rtctl.engine.run import run
+
+# line-bimorph-5-closed (max_voltage 150 V): channel 0 a 40 Hz tone whose 60 um is out of reach
+# beside a 250 Hz one (two sines: each tone's cap is 75 V); channel 1 three tones; channel 2 a
+# beat pair alone (250 Hz carrier, 240 and 260 Hz sines: the whole 150 V) out of reach at 200 um
+TONES = ('stimulus.tones=['
+         '{channel = 0, freq = 40.0, voltage = 40.0, receptor = "meissner", target_um = 60.0}, '
+         '{channel = 0, freq = 250.0, voltage = 1.0, receptor = "pacinian"}, '
+         '{channel = 1, freq = 120.0, voltage = 30.0, receptor = "meissner"}, '
+         '{channel = 1, freq = 180.5, voltage = 1.0, receptor = "pacinian"}, '
+         '{channel = 1, freq = 250.25, voltage = 1.0, receptor = "pacinian"}, '
+         '{channel = 2, freq = 250.0, beat = 20.0, voltage = 30.0, receptor = "pacinian", target_um = 200.0}]')
+
+
+@pytest.fixture(scope="module")
+def summary(tmp_path_factory):
+    sets = ["timing.duration=0.3", "events=[]", TONES]
+    return run(scene.load("line-bimorph-5-closed", sets), out_dir=tmp_path_factory.mktemp("t"), plot=False).summary
+
+
+@pytest.fixture(scope="module")
+def lines(summary):
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        print_table(summary)
+    return buf.getvalue().splitlines()
+
+
+def _line(lines, name):
+    return next(x for x in lines if x.startswith(name + " "))
+
+
+def test_every_tone_of_a_channel_is_in_the_frequency_column(summary, lines):
+    """The column printed only the first tone's frequency (40.0 for the 40 + 250 Hz channel)."""
+    rows = summary["channels"]
+    assert rows[0]["tones_hz"] == [40.0, 250.0] and rows[1]["tones_hz"] == [120.0, 180.5, 250.25]
+    assert "tones_hz" not in rows[2]  # a beat pair is one tone, though its freqs_hz has two sines
+    assert rows[2]["freqs_hz"] == [240.0, 260.0]
+    head = lines[1]
+    end = head.index("freq Hz") + len("freq Hz")  # the column's right edge
+    want = {"lateral.0": "40+250", "lateral.1": "120+180.5+250.25", "lateral.2": "250.0", "lateral.3": "-"}
+    for name, text in want.items():
+        line = _line(lines, name)
+        assert line[:end].endswith(" " + text), (line, head)
+        assert line[end:].split()[0] == f"{summary['channels'][int(name[-1])]['v_peak']:.1f}", line
+    assert len(lines[2]) == len(head) and set(lines[2]) == {"-"}
+
