@@ -1,5 +1,6 @@
 """The per-channel table ``rtctl run`` prints: a channel of several tones lists every tone's
-frequency (a beat pair is one tone, at its carrier)."""
+frequency (a beat pair is one tone, at its carrier), and a saturated tone that has only a share of
+its channel's max_voltage says so, with the share in volts."""
 
 from __future__ import annotations
 
@@ -57,3 +58,20 @@ def test_every_tone_of_a_channel_is_in_the_frequency_column(summary, lines):
         assert line[end:].split()[0] == f"{summary['channels'][int(name[-1])]['v_peak']:.1f}", line
     assert len(lines[2]) == len(head) and set(lines[2]) == {"-"}
 
+
+def test_a_saturated_tone_with_a_share_of_max_voltage_says_so(summary, lines):
+    """Channel 0's 40 Hz tone is capped at 75 V (150 V over the channel's two sines) and channel
+    1's tones at 50 V (three), which the table called "saturated at max_voltage"; the beat pair
+    alone on channel 2 has all 150 V."""
+    rows = summary["channels"]
+    assert rows[0]["saturated"] and rows[0]["share_v"] == [75.0]
+    assert rows[0]["v_peak"] < 150.0
+    reach = f"{rows[0]['reachable_um']:.3g}"
+    assert _line(lines, "lateral.0").endswith(f"(saturated at its share of max_voltage, 75 V: reaches {reach} um)")
+    assert rows[2]["saturated"] and "share_v" not in rows[2]
+    assert rows[2]["v_peak"] == pytest.approx(150.0, rel=1e-3)
+    reach = f"{rows[2]['reachable_um']:.3g}"
+    assert _line(lines, "lateral.2").endswith(f"(saturated at max_voltage: reaches {reach} um)")
+    # the 120 Hz tone needs about 56 V (alone on its channel above), its share beside two more is 50
+    assert rows[1]["saturated"] and rows[1]["share_v"] == [50.0]
+    assert "(saturated at its share of max_voltage, 50 V: reaches" in _line(lines, "lateral.1")

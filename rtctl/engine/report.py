@@ -244,9 +244,17 @@ def _control(rig, rows) -> None:
     from the controllers' final state."""
     if not rig.controllers:
         return  # open loop: rtctl.control is neither needed nor imported
-    from ..control._kernels import BANK, CHANNEL, CMD, EST, LOWN, NREL, OBS_CH, SAT
+    from ..control._kernels import AMAX, BANK, CHANNEL, CMD, EST, LOWN, NREL, OBS_CH, SAT
 
+    owner = {b: i for i, bank in enumerate(rig.stimulus.bank_index) for b in bank}  # bank tone -> scene tone
     for _, st, ctl in rig.controllers:
+        # a tone's cap is the sum of its sines' (a beat pair's envelope peak); where the channel
+        # plays more than one tone it is a share of max_voltage, not the whole
+        caps: dict = {}
+        for j in range(ctl.n):
+            i = owner[int(ctl.index[BANK, j])]
+            caps[i] = caps.get(i, 0.0) + float(ctl.state[AMAX, j])
+        shared: dict = {}  # channel -> its saturated tones whose cap is a share, tone -> cap (V)
         for j in range(ctl.n):
             row = rows[int(ctl.index[CHANNEL, j])]
             row["controlled"] = True
@@ -266,6 +274,10 @@ def _control(rig, rows) -> None:
                                       if rig.calibration else None)
             sat = bool(ctl.state[SAT, j])
             row["saturated"] = row.get("saturated", False) or sat
+            i = owner[int(ctl.index[BANK, j])]
+            if sat and caps[i] < rig.scene.group(row["group"]).max_voltage * (1.0 - 1e-6):
+                # to the microvolt: the cap sits a hair below the share (rtctl.engine.rig)
+                shared.setdefault(int(ctl.index[CHANNEL, j]), {})[i] = round(caps[i], 6)
             # how long it was held at the least drive any load the model knows allows, the
             # estimate still above the target: the estimate was not following the tip
             # (rtctl.control.amplitude); any time at all is worth a look
@@ -291,6 +303,8 @@ def _control(rig, rows) -> None:
                         row.get("reachable_um", 0.0) is not None:
                     est = (row.get("reachable_um") or 0.0) + e * 1e6 if math.isfinite(e) else None
                 row["reachable_um"] = est
+        for ch, per_tone in shared.items():  # only where there is a share: a tone alone has the whole channel
+            rows[ch]["share_v"] = [per_tone[i] for i in sorted(per_tone)]
 
 
 def segment_targets(rig, ch: int) -> list[float]:
@@ -408,9 +422,13 @@ def print_table(summary: dict) -> None:
         felt = {None: "-", True: "yes", False: "NO" if r["contact"] else "NO (no contact)"}[r["felt"]]
         if r.get("saturated"):
             reach = r.get("reachable_um")
-            note = (f" (saturated at max_voltage: reaches {_fmt(reach, '.3g')} um)" if reach is not None else
-                    " (saturated at max_voltage; no observer window fits in the run's last segment)"
-                    if r.get("estimate_window") is False else " (saturated at max_voltage)")
+            share = r.get("share_v")
+            cap = ("max_voltage" if not share else
+                   f"{'its share' if len(share) == 1 else 'their shares'} of max_voltage, "
+                   f"{'+'.join(format(v, '.3g') for v in share)} V")
+            note = (f" (saturated at {cap}: reaches {_fmt(reach, '.3g')} um)" if reach is not None else
+                    f" (saturated at {cap}; no observer window fits in the run's last segment)"
+                    if r.get("estimate_window") is False else f" (saturated at {cap})")
         elif r["limited"]:
             note = " (limited: " + ", ".join(r.get("limited_by") or ["?"]) + ")"
         else:
