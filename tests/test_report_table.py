@@ -4,6 +4,9 @@ its channel's max_voltage says so, with the share in volts."""
 
 from __future__ import annotations
 
+import contextlib
+import io
+
 import pytest
 
 from rtctl import scene
@@ -28,15 +31,16 @@ def summary(tmp_path_factory):
     return run(scene.load("line-bimorph-5-closed", sets), out_dir=tmp_path_factory.mktemp("t"), plot=False).summary
 
 
-@pytest.fixture(scope="module")
-def lines(summary):
-    import contextlib
-    import io
-
+def _table(summary) -> list[str]:
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         print_table(summary)
     return buf.getvalue().splitlines()
+
+
+@pytest.fixture(scope="module")
+def lines(summary):
+    return _table(summary)
 
 
 def _line(lines, name):
@@ -75,3 +79,20 @@ def test_a_saturated_tone_with_a_share_of_max_voltage_says_so(summary, lines):
     # the 120 Hz tone needs about 56 V (alone on its channel above), its share beside two more is 50
     assert rows[1]["saturated"] and rows[1]["share_v"] == [50.0]
     assert "(saturated at its share of max_voltage, 50 V: reaches" in _line(lines, "lateral.1")
+
+
+def test_a_played_signals_voices_are_listed_once_per_frequency(tmp_path):
+    """heartbeat.ahap on the closed-loop scene plays three voices on channel 0 (212, 146 and 146
+    Hz): the column said 212.0, and its saturated voice is capped at 50 V, a third of 150 V."""
+    from rtctl.play import pattern_scene
+
+    pattern = scene.resolve("line-bimorph-5").parent / "patterns" / "heartbeat.ahap"
+    s, _ = pattern_scene(str(pattern), "line-bimorph-5-closed", (), 0.9)
+    summary = run(s, out_dir=str(tmp_path / "hb"), plot=False, progress=False).summary
+    row = summary["channels"][0]
+    assert row["tones_hz"] == [212.0, 146.0, 146.0] and row["saturated"] and row["share_v"] == [50.0]
+    lines = _table(summary)
+    head = lines[1]
+    end = head.index("freq Hz") + len("freq Hz")
+    line = _line(lines, "lateral.0")
+    assert line[:end].endswith(" 212+146") and "(saturated at its share of max_voltage, 50 V" in line

@@ -410,9 +410,11 @@ def print_table(summary: dict) -> None:
     print(f"{summary['scene']}: {summary['duration_s']:g} s at {summary['fs']:g} Hz, block {summary['block']}, "
           f"real-time factor {summary['realtime_factor']:.1f}, block time p99 "
           f"{summary['block_time_us']['p99']:.1f} us, deadline misses {summary['deadline_misses']}")
-    # a channel of several tones lists them all ("40+250"); the column widens only for such a list
-    freqs = [_fmt(r["freq_hz"], ".1f") if not r.get("tones_hz") else "+".join(f"{f:g}" for f in r["tones_hz"])
-             for r in summary["channels"]]
+    # a channel of several tones lists their frequencies ("40+250"), each once (a played signal's
+    # voices often share one); the column widens only for such a list
+    tones = [list(dict.fromkeys(r.get("tones_hz") or ())) for r in summary["channels"]]
+    freqs = [_fmt(r["freq_hz"], ".1f") if len(f) < 2 else "+".join(f"{x:g}" for x in f)
+             for r, f in zip(summary["channels"], tones)]
     w = max([9] + [len(f) + 1 for f in freqs])
     head = f"{'channel':<12}{'receptor':<10}{'freq Hz':>{w}}{'V peak':>8}{'true um':>10}{'thresh um':>10}" \
            f"{'target um':>10}{'error %':>9}{'settle ms':>10}  felt"
