@@ -23,7 +23,7 @@ time at 32 samples). The differences
 and the residual acceleration ``w_r^2 (v - y)`` are not formed from two large products that
 cancel. A cell at rest (its state exactly 0) and undriven over a chunk is not stepped, and every
 tile that reads nothing but such cells is left out: exact zeros, bitwise the same outputs (a
-plate with 2 of its 48 cells driven spent 60 % of its time on the other 46).
+plate with 2 of its 48 cells driven spent nearly half its time on the other 46).
 """
 
 from __future__ import annotations
