@@ -226,4 +226,7 @@ def test_check_and_run_refuse_an_overlap_longer_than_the_item_before(tmp_path):
              "start before it (signal 'ab')")
     _refused(["check", str(f)], words)
     _refused(["run", str(f), "--duration", "0.1", "--quiet", "--no-plot", "--out", str(tmp_path / "r")], words)
-    assert not (tmp_path / "r" / "trace").exists()
+    assert not (tmp_path / "r").exists()  # refused before anything was written: no empty --out left
+    (tmp_path / "kept").mkdir()  # a directory the user made stays, empty or not
+    _refused(["run", str(f), "--duration", "0.1", "--quiet", "--no-plot", "--out", str(tmp_path / "kept")], words)
+    assert (tmp_path / "kept").is_dir()

@@ -17,6 +17,7 @@ filesystem (its estimate against the free space) is refused before it starts.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import shutil
@@ -118,26 +119,33 @@ def run(scene, out_dir=None, realtime: bool = False, plot: bool = True, progress
     from .rig import build
 
     validity = model_validity(scene)  # a model far outside its range is refused here
+    created = out_dir is not None and not Path(out_dir).exists()
     if out_dir is not None:  # before anything runs: a bad directory is one line, not a lost run
         writable_dir(out_dir, "--out", subdirs=("trace",), files=RUN_FILES + ("calibration.json",))
     calibrated = None
-    if rig is not None:
-        rig.reset()
-        rig.device.reset()
-    elif scene.control.calibrate == "auto":
-        from .calibrate import auto
-
-        scene, calibrated = auto(scene, out_dir, run, say=_stderr if progress else None)
-    t_build = time.perf_counter()
-    # A build that compiles (an empty or outdated numba cache) takes 20-40 s: say so on a terminal,
-    # as the progress bar does, not a silence (piped output keeps its one line per error).
-    notice = _Notice(2.0, "compiling the block function and its kernels (the first run after an install or "
-                          "a change; numba caches them for the next runs; `rtctl warm` does it ahead) ...",
-                     progress and sys.stderr.isatty() and rig is None)
     try:
-        rig = build(scene) if rig is None else rig
-    finally:
-        notice.cancel()
+        if rig is not None:
+            rig.reset()
+            rig.device.reset()
+        elif scene.control.calibrate == "auto":
+            from .calibrate import auto
+
+            scene, calibrated = auto(scene, out_dir, run, say=_stderr if progress else None)
+        t_build = time.perf_counter()
+        # A build that compiles (an empty or outdated numba cache) takes 20-40 s: say so on a
+        # terminal, as the progress bar does, not a silence (piped output keeps its one line per error).
+        notice = _Notice(2.0, "compiling the block function and its kernels (the first run after an install or "
+                              "a change; numba caches them for the next runs; `rtctl warm` does it ahead) ...",
+                         progress and sys.stderr.isatty() and rig is None)
+        try:
+            rig = build(scene) if rig is None else rig
+        finally:
+            notice.cancel()
+    except BaseException:
+        if created:  # refused before anything was written (a bad signal, an image): leave no empty --out
+            with contextlib.suppress(OSError):
+                Path(out_dir).rmdir()  # (only if empty)
+        raise
     build_s = time.perf_counter() - t_build
     if calibrated is not None and out_dir is None:  # auto's temporary file: the rig has read it
         Path(scene.control.calibration).unlink(missing_ok=True)
