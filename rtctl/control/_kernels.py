@@ -58,7 +58,8 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  LOWN,    # blocks the command has been held at the floor since the controller's reset
  GMAX,    # the most tip per volt a device may have at the tone, m/V (GTOP without its margin)
  JNOISE,  # the release rule's noise allowance on a rise of the estimate, m (< 0: no release rule)
- ANCHOR,  # the latest fresh estimate of this command within AGREE of the target, m (0: none)
+ ANCHOR,  # the latest fresh estimate of this command within AGREE of the target (the target itself
+          # while saturated under it), m (0: none)
  NREL,    # releases since the controller's reset
  PREVY,   # the previous watched block's fresh estimate, m (0: none since the last command)
  RIPPLE,  # how far fresh estimates fell from block to block of late, m (a decaying peak)
