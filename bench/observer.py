@@ -4,11 +4,13 @@ Builds the ``bench/loop.py`` rigs (line-bimorph-5, N lateral channels, one rando
 block 32) with ``control.observe = true`` (one window for the group) and closed-loop control (a
 window per channel, least squares), runs them into steady state, then calls the observer
 stage's kernel on its own arguments from a compiled loop (no dispatch per call): median over
-repeats of the mean time per call. ``--parts`` times the pieces the stage is made of the same
-way: the two lock-ins split into demodulation, oscillator bookkeeping, hop and estimate, then
-the observer products, the tip waveform and the amplitudes. The stage is timed against its
-reference twin (``tests/twin_observer.py``, the kernels before they were rewritten for speed),
-alternating in this process; the parts are the twin's.
+repeats of the mean time per call. Each rig's stage is also timed without its drive step's
+correction (the first difference's lock-in), alternating with the stage as it runs. ``--parts``
+times the pieces the stage is made of the same way: the two lock-ins split into demodulation,
+oscillator bookkeeping, hop and estimate, then the observer products, the tip waveform and the
+amplitudes. The stage is timed against its reference twin (``tests/twin_observer.py``, the
+kernels before they were rewritten for speed), alternating in this process; the parts are the
+twin's.
 
     python bench/observer.py [--channels 1,16,48,128] [--parts] [--calls 2000] [--repeats 15]
 """
@@ -35,22 +37,18 @@ from rtctl.selfsense.stage import observe_stage  # noqa: E402
 
 
 @njit(cache=True)
-def rep_stage(n, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18, a19,
-              a20, a21, a22, a23, a24, a25, a26, a27):
+def rep_stage(n, *args):
     s = 0
     for _ in range(n):
-        s |= observe_stage(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18,
-                           a19, a20, a21, a22, a23, a24, a25, a26, a27)
+        s |= observe_stage(*args)
     return s
 
 
 @njit(cache=True)
-def rep_twin(n, a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18, a19,
-             a20, a21, a22):
+def rep_twin(n, *args):
     s = 0
     for _ in range(n):
-        s |= dk.observe_stage(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18,
-                              a19, a20, a21, a22)
+        s |= dk.observe_stage(*args)
     return s
 
 
@@ -188,10 +186,15 @@ def timed(fn, args, calls, repeats):
     return 1e6 * float(np.median(ts))
 
 
+# what the stage took since the twin: the image loads' choice, the low-pass, a drive step's correction
+SINCE_TWIN = ("Hc", "pick", "resid", "contact", "lag", "pf", "pf_z", "pf_x", "pf_g", "d_ref", "d_pend", "d_chan",
+              "d_acc", "d_ring", "d_solve", "d_last", "dx", "invJ", "Kc")
+
+
 def twin_args(st):
     """The stage's arguments, copied, for the twin (whose scratch slot held the currents' outputs)."""
     a = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in st.args.items()  # the rig keeps its own
-         if k not in ("Hc", "pick", "resid", "contact", "lag")}  # the twin reads one image load
+         if k not in SINCE_TWIN}
     a["back"] = np.zeros((a["i_acc"].shape[1] // a["est"].shape[1], a["est"].shape[1], 2))
     return a
 
@@ -208,6 +211,24 @@ def alternate(st, calls, repeats):
             fn(calls, *args)
             ts.append((time.perf_counter() - t) / calls)
     return 1e6 * float(np.median(to)), 1e6 * float(np.median(tn))
+
+
+def steps_cost(st, calls, repeats):
+    """(without, with) us per block: the stage without a drive step's correction (``Kc`` with no
+    rows: the first difference is neither taken nor demodulated) and as it runs, alternating."""
+    with_ = tuple(st.args.values())
+    a = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in st.args.items()}
+    a["Kc"] = np.zeros((0, *a["Kc"].shape[1:]))
+    without = tuple(a.values())
+    rep_stage(2, *without)
+    rep_stage(2, *with_)
+    t0, t1 = [], []
+    for _ in range(repeats):
+        for args, ts in ((without, t0), (with_, t1)):
+            t = time.perf_counter()
+            rep_stage(calls, *args)
+            ts.append((time.perf_counter() - t) / calls)
+    return 1e6 * float(np.median(t0)), 1e6 * float(np.median(t1))
 
 
 def parts(st, calls, repeats):
@@ -248,6 +269,8 @@ def main(argv=None) -> int:
             cyc = 1e3 * f / (n_ch * 32)
             print(f"{n_ch:4d} ch {'closed ' if closed else 'observe'}: stage {old:7.2f} -> {new:7.2f} us/block "
                   f"(x{old / new:4.2f}), {old * cyc:5.1f} -> {new * cyc:5.1f} cycles per channel-sample")
+            off, on = steps_cost(st, a.calls, a.repeats)
+            print(f"{'':12s}a drive step's correction: {off:7.2f} -> {on:7.2f} us/block (x{on / off:4.2f})")
             if a.parts:
                 for k, v in parts(st, a.calls, a.repeats).items():
                     print(f"      {k:24s} {v:7.2f} us  {v * 1e3 * f / (n_ch * 32):6.1f} cyc/ch-sample")

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import scipy.signal
-from naive_selfsense import observer_block
+from naive_selfsense import observer_block, steps_K
 
 from rtctl.errors import ModelError
 from rtctl.plant.materials import BUILTIN
@@ -80,7 +80,8 @@ def test_block_step_is_the_naive_twin_over_lfiltered_samples():
     for c, w in enumerate(obs.windows):
         sl = slice(n_total - w, n_total)
         want = observer_block(Hc[c:c + 1], fd[c:c + 1, sl], fsn[c * n_seg:(c + 1) * n_seg, sl], freqs[c:c + 1],
-                              FS, n_seg, start=n_total - w)
+                              FS, n_seg, start=n_total - w, K=steps_K(obs)[c:c + 1],
+                              before=fd[c:c + 1, n_total - w - 1])
         np.testing.assert_allclose(got[c], want[0], rtol=1e-8, atol=1e-10 * np.abs(want).max())
     # the drive's reading, by least squares over the filtered drive, over the response at the tone
     c, w = 0, int(obs.windows[0])

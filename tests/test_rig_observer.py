@@ -4,7 +4,7 @@ simulated finite-element plant's true tip motion, which the observer never sees.
 import numpy as np
 import pytest
 import scipy.signal
-from naive_selfsense import observer_block
+from naive_selfsense import observer_block, steps_K
 
 from rtctl import scene
 from rtctl.engine.rig import build
@@ -91,7 +91,7 @@ def test_only_the_closed_loop_low_passes_its_low_tones():
         assert np.flatnonzero(obs.prefilter).tolist() == want, mode
         assert np.all(obs.prefilter_memory[obs.prefilter == 0] == 0)
         # observing alone keeps no filter rows: its block step copies nothing
-        assert (obs.args[-4].shape[0] == 0) == (not want), mode
+        assert (obs._pf.shape[0] == 0) == (not want), mode
 
 
 def test_closed_loop_each_channel_observes_over_its_own_tones():
@@ -126,17 +126,19 @@ def test_closed_loop_each_channel_observes_over_its_own_tones():
         sensed[c * m:(c + 1) * m] = scipy.signal.lfilter(b, a, sensed[c * m:(c + 1) * m], axis=1)
     H = obs.H[..., 0] + 1j * obs.H[..., 1]
     got = obs.est[..., 0] + 1j * obs.est[..., 1]
+    K = steps_K(obs)
     for c, w in enumerate(obs.windows):
         rows = slice(c * m, (c + 1) * m)
         want = observer_block(H[c:c + 1], drive[c:c + 1, n - w:n], sensed[rows, n - w:], obs.freqs[c:c + 1],
-                              rig.fs, m, start=n - w)
+                              rig.fs, m, start=n - w, K=K[c:c + 1], before=drive[c:c + 1, n - w - 1])
         np.testing.assert_allclose(got[c], want[0], rtol=1e-9, atol=1e-12 * np.abs(want).max())
         assert rig.estimated_amp[c] == pytest.approx(abs(want[0, 0, 0]), rel=1e-9)
         if w < obs.window:
             # the group's longest window (the 2 Hz channel's) reads the loop's start-up too: an
             # estimate 0.1-1.6 % away (measured), far outside the 1e-9 held above
             long = observer_block(H[c:c + 1], drive[c:c + 1, n - obs.window:n], sensed[rows, n - obs.window:],
-                                  obs.freqs[c:c + 1], rig.fs, m, start=n - obs.window)
+                                  obs.freqs[c:c + 1], rig.fs, m, start=n - obs.window, K=K[c:c + 1],
+                                  before=drive[c:c + 1, n - obs.window - 1])
             assert abs(long[0, 0, 0] - want[0, 0, 0]) > 1e-4 * abs(want[0, 0, 0]), c
     # the group's one controller reads the group observer's estimates, each tone its own channel's
     # row, and waits for that channel's window and low-pass memory in whole blocks

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from naive_selfsense import observer_block, rebuild
+from naive_selfsense import observer_block, rebuild, steps_K
 
 from rtctl.plant import Amplifier, BimorphPlant, CurrentSense, SimGroup
 from rtctl.plant.beam import BeamSpec, Layer, build_beam
@@ -49,7 +49,7 @@ def test_kernel_matches_naive_twin():
         sl = slice(b * BLOCK, (b + 1) * BLOCK)
         assert obs.process(np.ascontiguousarray(drive[:, sl]), np.ascontiguousarray(sensed[:, sl])) == 0
     Hc = H[..., 0] + 1j * H[..., 1]
-    want = observer_block(Hc, drive, sensed, freqs, FS, obs.n_seg)
+    want = observer_block(Hc, drive, sensed, freqs, FS, obs.n_seg, K=steps_K(obs))
     got = obs.est[..., 0] + 1j * obs.est[..., 1]
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
     wave = rebuild(want[:, :, 0], freqs, FS, W - BLOCK, BLOCK)
@@ -78,7 +78,7 @@ def test_window_per_channel_matches_naive_twin_per_channel():
     for c, w in enumerate(windows):
         rows = slice(c * m, (c + 1) * m)
         want = observer_block(Hc[c:c + 1], drive[c:c + 1, -w:], sensed[rows, -w:], freqs[c:c + 1], FS, m,
-                              start=n_total - w)
+                              start=n_total - w, K=steps_K(obs)[c:c + 1], before=drive[c:c + 1, -w - 1])
         np.testing.assert_allclose(got[c:c + 1], want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
         wave = rebuild(want[:, :, 0], freqs[c:c + 1], FS, n_total - BLOCK, BLOCK)
         np.testing.assert_allclose(obs.wave[c:c + 1], wave, rtol=1e-9, atol=1e-9 * np.abs(wave).max())
@@ -89,7 +89,8 @@ def test_window_per_channel_matches_naive_twin_per_channel():
                 assert obs.u_out[c, k, 1] == pytest.approx(np.angle(u), abs=1e-9)
         if w < obs.window:  # and the longest window would have given something else
             other = observer_block(Hc[c:c + 1], drive[c:c + 1, -obs.window:], sensed[rows, -obs.window:],
-                                   freqs[c:c + 1], FS, m, start=n_total - obs.window)
+                                   freqs[c:c + 1], FS, m, start=n_total - obs.window, K=steps_K(obs)[c:c + 1],
+                                   before=drive[c:c + 1, -obs.window - 1])
             assert np.abs(other - want).max() > 1e-3 * np.abs(want).max()
     # a channel's view: the observer's own arrays, indexed within the view
     view = ObserverRows(obs, 2, 4)
@@ -242,6 +243,9 @@ def test_least_squares_channels_match_numpy_lstsq():
 
         ph = np.stack([fit(drive[c])] + [fit(sensed[c * m + j]) for j in range(m)], axis=-1)  # (n_f, 1 + m)
         want = np.einsum("kej,kj->ke", Hc[c, :f.size], ph)
+        # less a drive step's term: the first difference's phasors over a steady tone's, less the drive's
+        d = fit(np.diff(drive[c, -w - 1:])) / (1.0 - np.exp(-2j * np.pi * f / FS))
+        want -= steps_K(obs)[c, :f.size] * (d - ph[:, 0])[:, None]
         np.testing.assert_allclose(got[c, :f.size], want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
         np.testing.assert_allclose(obs.u_out[c, :f.size, 0], np.abs(ph[:, 0]), rtol=1e-9)
 

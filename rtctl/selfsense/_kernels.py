@@ -57,7 +57,8 @@ _LANES = 8
 @kernel
 def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring,
                      i_solve, u_out, back, H, Hc, pick, resid, contact, lag, scale, est, wave, pf, pf_z,
-                     pf_x, pf_g, drive, sensed):
+                     pf_x, pf_g, d_ref, d_pend, d_chan, d_acc, d_ring, d_solve, d_last, dx, invJ, Kc, drive,
+                     sensed):
     """One block: low-pass drive and currents (:func:`_prefilter`), demodulate them, take each
     channel's image load (:func:`_pick_load`), apply the observer, rebuild the tip waveform.
 
@@ -102,6 +103,20 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     pf_g : ndarray, shape (n_ch, n_tones, 2)
         ``1 / |G|`` and ``arg G`` of that response at each tone (1 and 0 unfiltered): ``u_out``
         is the drive's, as sent.
+    d_ref, d_pend, d_chan, d_acc, d_ring, d_solve : ndarray
+        Lock-in of the drive's first difference (as the drive's lock-in reads the drive, after
+        the low-pass), slots ``(n_ch, n_tones)``.
+    d_last : ndarray, shape (n_ch,)
+        The last drive sample of the previous block (the first difference's memory); updated.
+    dx : ndarray, shape (n_ch, n)
+        Scratch: this block's first differences.
+    invJ : ndarray, shape (n_ch, n_tones, 2)
+        ``1 / (1 - exp(-j w / fs))`` per slot (real, imaginary): a steady tone's first
+        difference over its phasor, inverted.
+    Kc : ndarray, shape (n_ch or 0, n_tones, n_loads, n_est, 2)
+        Per candidate load, what a drive step's boundary term (``D J^-1 - U``, drive volts) puts
+        in each estimate row through the currents (``Observer._steps_design``); taken out. No rows:
+        nothing is taken out, and the first difference is not demodulated.
     drive : ndarray, shape (n_ch, n)
         Drive volts written to the DAC for this block.
     sensed : ndarray, shape (n_ch * n_seg, n)
@@ -125,6 +140,16 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
                 u_out[c, k, 0] *= pf_g[c, k, 0]
                 u_out[c, k, 1] -= pf_g[c, k, 1]
         _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, pf_x[n_d:])
+    steps = Kc.shape[0] > 0
+    if steps:
+        x = drive if pf.shape[0] == 0 else pf_x[:drive.shape[0]]
+        for c in range(x.shape[0]):
+            prev = d_last[c]
+            for n in range(x.shape[1]):
+                dx[c, n] = x[c, n] - prev
+                prev = x[c, n]
+            d_last[c] = prev
+        _dk.lockin_sums(d_ref, d_pend, d_chan, d_acc, d_ring, d_solve, dx)
     if Hc.shape[2] > 1:
         _pick_load(u_acc, i_acc, H, Hc, pick, resid, contact, lag, scale)
     n_ch, n_t, n_est = est.shape[0], est.shape[1], est.shape[2]
@@ -152,6 +177,21 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
                     hi = H[c, k, e, 1 + j, 1]
                     est[c, k, e, 0] += hr * sr - hi * si
                     est[c, k, e, 1] += hr * si + hi * sr
+            if steps:
+                # the boundary term of a drive step, in drive volts: what the difference's phasor
+                # says the drive was, less what the drive's says; 0 for a steady tone
+                qr = sc * d_acc[_XR, us]
+                qi = sc * d_acc[_XI, us]
+                jr = invJ[c, k, 0]
+                ji = invJ[c, k, 1]
+                br = qr * jr - qi * ji - dr
+                bi = qr * ji + qi * jr - di
+                q = pick[c]
+                for e in range(n_est):
+                    kr = Kc[c, k, q, e, 0]
+                    ki = Kc[c, k, q, e, 1]
+                    est[c, k, e, 0] -= kr * br - ki * bi
+                    est[c, k, e, 1] -= kr * bi + ki * br
             for e in range(n_est):
                 if not (np.isfinite(est[c, k, e, 0]) and np.isfinite(est[c, k, e, 1])):
                     status |= STATUS_NONFINITE
