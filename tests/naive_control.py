@@ -12,6 +12,7 @@ from rtctl.control._kernels import (
     AMAX,
     ANCHOR,
     BANK,
+    BEFORE,
     BIG_STEP,
     CHANGED,
     CHANNEL,
@@ -103,16 +104,19 @@ def _watch_anew(col):
     col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = col[ANCHOR] = col[PREVY] = col[NWATCH] = col[HIGH] = 0.0
 
 
-def _let_go(col, y, r, a):
-    """The release rule: a rise of the estimate above the latest on-target one."""
+def _let_go(col, y, r, a, waiting=False):
+    """The release rule: a rise of the estimate above the latest on-target one, or while waiting
+    out a correction's window (and after it, until an estimate comes on target) above what the
+    correction explains."""
     if not (0 < y < math.inf and r > 0) or col[JNOISE] < 0:
         return False
     rip = col[RIPPLE]
+    base = col[ANCHOR] if col[ANCHOR] > 0 and not waiting else col[BEFORE]
     col[NWATCH] += 1
-    high = (col[NWATCH] >= RELEASE_AFTER and col[ANCHOR] > 0
-            and y - col[ANCHOR] > RELEASE * r + col[JNOISE] + RIPPLE_K * rip and a * col[GMAX] > (1 + RELEASE) * r)
+    high = (col[NWATCH] >= RELEASE_AFTER and base > 0
+            and y - base > RELEASE * r + col[JNOISE] + RIPPLE_K * rip and a * col[GMAX] > (1 + RELEASE) * r)
     col[HIGH] = col[HIGH] + 1 if high else 0.0
-    if not high:
+    if not high and not waiting:
         if col[PREVY] > 0:
             col[RIPPLE] = max(col[PREVY] - y, RIPPLE_DECAY * rip)
         if abs(y / r - 1) <= AGREE:
@@ -123,12 +127,26 @@ def _let_go(col, y, r, a):
     return col[HIGH] >= RELEASE_RUN
 
 
+def _release(col, y, r):
+    """The finger let go: the drive for the most responsive load, a new command's watch."""
+    col[EST], col[GHAT] = y, col[GMAX]
+    col[GLIVE] = col[RSUM] = col[RRUN] = col[RREF] = 0.0
+    col[NREL] += 1
+    _watch_anew(col)
+    _pace_anew(col)
+    col[WAIT], col[BEFORE] = col[WARM], 0.0
+    return r / col[GMAX]
+
+
 def _others_wait(state, index, stepped):
-    """Every other playing tone read on the channel of a tone whose drive stepped waits a window
-    afresh."""
+    """Every other playing tone read on the channel of a tone whose drive stepped (``stepped``:
+    by how much, relative) waits a window afresh, watched against its own level and that step
+    again."""
     for i in np.flatnonzero(stepped):
         for k in range(state.shape[1]):
             if k != i and index[OBS_CH, k] == index[OBS_CH, i] and state[ON, k]:
+                state[BEFORE, k] = max(state[BEFORE, k] if state[WAIT, k] > 0 else 0.0,
+                                       state[EST, k] * (1 + stepped[i]))
                 state[WAIT, k] = max(state[WAIT, k], state[WARM, k])
                 _watch_anew(state[:, k])
 
@@ -145,14 +163,14 @@ def _ring_end(p1, p2, a, v1, v2, v3):
 
 def amplitude_control(est, drive_est, index, target, state, pending, lim_counts, ramp):
     status = 0
-    stepped = np.zeros(state.shape[1], dtype=bool)
+    stepped = np.zeros(state.shape[1])
     for i in range(state.shape[1]):
         b = index[BANK, i]
         col = state[:, i]
         if target[ENABLE, i] == 0:
             col[LOW] = 0.0
             if col[ON]:
-                stepped[i] = True
+                stepped[i] = 1.0
                 col[ON] = col[CMD] = col[OUT] = 0.0
                 pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = 0.0, ramp, 1.0
             continue
@@ -175,7 +193,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         starting = not col[ON]
         if not starting and r != col[TPREV] and col[GLIVE] > 0:
             a = r / col[GLIVE]
-            col[TPREV], col[WAIT] = r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
+            col[TPREV], col[WAIT], col[BEFORE] = r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1), 0.0
             _watch_anew(col)
             _pace_anew(col)
         elif starting or r != col[TPREV]:
@@ -183,19 +201,22 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             if starting:
                 col[RISEK], col[A0], rising = 0.0, 0.0, col[RISE] > 0
             col[ON], col[TPREV], col[WAIT] = 1.0, r, col[WARM] + max(0.0, col[RISE] - col[RISEK] - 1)
+            col[BEFORE] = 0.0
             _watch_anew(col)
             _pace_anew(col)
         elif col[WAIT] > 0:
             col[WAIT] -= 1
-            if not rising:
-                continue
+            if col[BEFORE] > 0 and _let_go(col, math.hypot(*est[c, j, 0]), r, a, waiting=True):
+                a = _release(col, math.hypot(*est[c, j, 0]), r)
+                if rising:
+                    col[RISEK], rising = col[RISE], False
+            else:
+                if col[WAIT] == 0:
+                    col[NWATCH] = col[PREVY] = col[HIGH] = 0.0
+                if not rising:
+                    continue
         elif _let_go(col, math.hypot(*est[c, j, 0]), r, a):
-            a, col[EST], col[GHAT] = r / col[GMAX], math.hypot(*est[c, j, 0]), col[GMAX]
-            col[GLIVE] = col[RSUM] = col[RRUN] = col[RREF] = 0.0
-            col[NREL] += 1
-            _watch_anew(col)
-            _pace_anew(col)
-            col[WAIT] = col[WARM]
+            a = _release(col, math.hypot(*est[c, j, 0]), r)
         else:
             y = math.hypot(*est[c, j, 0])
             col[EST] = y
@@ -276,7 +297,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 col[LASTDIR] = up
             a *= step
             _watch_anew(col)
-            col[WAIT] = col[WARM]
+            col[WAIT], col[BEFORE] = col[WARM], mean * (max(1.0, step) + abs(step - 1))
             if not 1 / BIG_STEP <= step <= BIG_STEP and col[RISE] > 1:
                 col[A0], col[RISEK], rising = col[OUT], 0.0, True
                 col[WAIT] += col[RISE] - 1
@@ -294,7 +315,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if rising:
             col[RISEK] += 1
             a = col[A0] + (a - col[A0]) * (1 - math.cos(math.pi * col[RISEK] / col[RISE])) / 2
-        stepped[i] = abs(a - col[OUT]) > AGREE * col[OUT]
+        if abs(a - col[OUT]) > AGREE * col[OUT]:
+            stepped[i] = abs(a - col[OUT]) / col[OUT] if col[OUT] > 0 else 1.0
         col[OUT] = a
         pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = a, ramp, 1.0
     _others_wait(state, index, stepped)

@@ -859,6 +859,81 @@ def test_a_one_block_rise_is_no_release():
         assert loop.ctl.state[NREL, 0] == fires
 
 
+def _corrected_on(level, target=5e-6):
+    """A tone held on target (tip per volt 1e-7, a 30-block window one block late), its estimate
+    sliding down to ``level`` of the target by 1 % per block (little ripple to raise a release's
+    bar), then read there until the loop corrects (up, by ``1 / level``): the loop, waiting out
+    that correction's window."""
+    loop = Loop([1e-7], [1e-7], [target], latency=1, window=30, gain_top=[3e-7], release=[0.001 * target])
+    loop.run(400)
+    a0 = loop.ctl.state[CMD, 0]
+    loop.read(np.arange(0.99, level, -0.01), target)
+    assert loop.ctl.state[CMD, 0] == a0
+    for _ in range(200):
+        loop.read([level], target)
+        if loop.ctl.state[CMD, 0] != a0:
+            break
+    assert loop.ctl.state[CMD, 0] / a0 == pytest.approx(1.0 / level, rel=1e-12)
+    assert loop.ctl.state[WAIT, 0] == loop.ctl.warm and loop.ctl.state[NREL, 0] == 0
+    return loop
+
+
+def test_a_finger_letting_go_while_the_loop_waits_out_its_own_correction_is_released():
+    """The plant turns 0.9x as responsive (the finger presses a little harder), the loop corrects
+    up (by 1.073: two stretches of the sliding window agreed within 5 %) and waits 32 blocks for a
+    window of the new command; 3 blocks into that wait the finger lets go (3x as responsive). The
+    estimate over the window slides from the level corrected on towards the new command's and no
+    further on an unchanged plant, ringing by at most the step again: a rise over that, by the
+    release's 2.1 %, in two estimates in a row is the finger. The tip is 3.2x the target for 5
+    blocks; without the watch in the wait it stayed so until the wait was out (over 30 blocks)."""
+    target = 5e-6
+    loop = Loop([1e-7], [1e-7], [target], latency=1, window=30, gain_top=[3e-7], release=[0.001 * target])
+    loop.run(400)
+    loop.plant[0] = 0.9e-7
+    a0 = loop.ctl.state[CMD, 0]
+    for _ in range(200):
+        loop.block()
+        if loop.ctl.state[CMD, 0] != a0:
+            break
+    assert loop.ctl.state[CMD, 0] > a0 and loop.ctl.state[WAIT, 0] > 0
+    loop.run(3)
+    loop.plant[0] = 3e-7
+    n = len(loop.truth)
+    tips = loop.run(60)[n:, 0]
+    assert loop.ctl.state[NREL, 0] == 1
+    assert int(np.count_nonzero(tips > 1.1 * target)) == 5
+    assert np.all(tips[5:] <= target * (1 + 1e-9))
+
+
+def test_a_correction_s_own_ring_is_no_release_while_waiting():
+    """Read at 0.6 of the target, the loop corrects by 1 / 0.6; waiting, it is watched against
+    0.6 x (1/0.6 + 2/3) = 1.4 of the target: estimates 7 % over the new level (a loaded mode
+    beside the tone beating with the step; measured on a 10 Hz tone pressed by a stiff finger)
+    are no release, 1.45 and 1.46 of the target are."""
+    target = 5e-6
+    loop = _corrected_on(0.6, target)
+    loop.read([0.6, 0.8, 1.0] + [1.07] * 10, target)
+    assert loop.ctl.state[NREL, 0] == 0 and loop.ctl.state[WAIT, 0] > 0
+    loop.read([1.45, 1.46], target)
+    assert loop.ctl.state[NREL, 0] == 1
+
+
+def test_after_the_wait_a_rise_counts_from_what_the_wait_allowed_until_an_estimate_is_on_target():
+    """Corrected on 0.6 of the target, the wait read 1.3 of it throughout (a lighter load since,
+    within what the correction allows, 1.4): no estimate on target to count a rise from after the
+    wait, so it counts from that 1.4, and 1.45 and 1.46 of the target release (before two
+    stretches could agree on a correction: the tip would sit 1.45x the target until then)."""
+    target = 5e-6
+    loop = _corrected_on(0.6, target)
+    loop.read([1.3] * int(loop.ctl.warm), target)
+    assert loop.ctl.state[WAIT, 0] == 0 and loop.ctl.state[NREL, 0] == 0
+    assert 2 * loop.ctl.hold > 5
+    loop.read([1.3, 1.3, 1.3], target)
+    assert loop.ctl.state[NREL, 0] == 0
+    loop.read([1.45, 1.46], target)
+    assert loop.ctl.state[NREL, 0] == 1
+
+
 def test_no_release_where_the_tip_falls_or_the_drive_is_already_the_lifted_one():
     """A finger that presses harder (the plant half as responsive), and a device 10 % more
     responsive than the most the model allows whose tip then rises by a third: no release (the

@@ -52,7 +52,8 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  NSTR,    # complete stretches of the present command
  SPREV,   # the steady amplitude the last stretch extrapolated, m (0: none)
  SLOW,    # 1: a loaded mode rings beside the tone, turning less than half a beat per stretch
- STEPPED,  # 1: the drive changed by more than AGREE in this block (its channel's other tones wait)
+ STEPPED,  # the drive's relative change in this block where over AGREE, 1 from or to 0 (0: none; its
+           # channel's other tones wait)
  GTOP,    # the most tip per volt a device may have at the tone, m/V (inf: no floor; see LOW)
  LOW,     # 1: the command is held at the floor, target / GTOP (the estimate asked for less)
  LOWN,    # blocks the command has been held at the floor since the controller's reset
@@ -65,8 +66,11 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  RIPPLE,  # how far fresh estimates fell from block to block of late, m (a decaying peak)
  NWATCH,  # blocks watched since the last command
  HIGH,    # fresh estimates in a row that rose as a release does
- ) = range(57)
-N_STATE = 57
+ BEFORE,  # while waiting out a correction's window: the most the estimate reads there on an unchanged
+          # plant, the level corrected on times the step where it rose, and the step's size again
+          # for the ring it may leave (0: not watched meanwhile), m
+ ) = range(58)
+N_STATE = 58
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -182,6 +186,12 @@ RIPPLE_DECAY = 0.9
 #: ... and not before this many fresh estimates of the command have been watched (two moves from
 #: block to block seen: the ring a correction or an event leaves has shown its size)
 RELEASE_AFTER = 3
+#: While a correction's window slides past (``WAIT``), the estimate moves from the level the
+#: correction was made on to that times the step, no further on an unchanged plant (a window
+#: over a drive step reads as the tip's own lock-in does: docs/selfsense.md), so a finger
+#: letting go then shows as a rise over the larger of the two (``BEFORE``) by the same margin.
+#: Without this watch a lift-off in that window went unanswered until it passed (a 25 Hz tone
+#: corrected 55 blocks before the lift-off released 60 blocks after it, its tip 5x its target).
 #: ... in this many fresh estimates in a row. A finger pressing harder also lifts the first
 #: estimate after it, by its static step (+4 % at 80 Hz on a 20 mm beam, and the next one 6 %
 #: under the target); a lift-off keeps rising. On one estimate the drive had dropped 5x under the
@@ -210,18 +220,24 @@ def _watch_anew(state, i):
 
 
 @kernel
-def _released(state, i, y, r, a):
-    """Whether tone ``i``'s fresh estimate ``y`` (m; target ``r``, command ``a``) shows a
-    release (``RELEASE``, ``RELEASE_RUN`` estimates in a row); keeps ``ANCHOR``, ``RIPPLE``, ``HIGH``."""
+def _released(state, i, y, r, a, waiting):
+    """Whether tone ``i``'s estimate ``y`` (m; target ``r``, command ``a``) shows a release
+    (``RELEASE``, ``RELEASE_RUN`` estimates in a row) over ``ANCHOR``, or while ``waiting`` out a
+    correction's window over ``BEFORE``; keeps ``ANCHOR``, ``RIPPLE``, ``HIGH`` (waiting: neither
+    the anchor nor the ripple moves, the window's slide being the loop's own)."""
     if not (y > 0.0 and y < math.inf and r > 0.0) or state[JNOISE, i] < 0.0:
         return False
     rip = state[RIPPLE, i]
+    # (after a wait, until an estimate comes on target, what the wait was watched against)
+    base = state[BEFORE, i] if waiting or state[ANCHOR, i] <= 0.0 else state[ANCHOR, i]
     state[NWATCH, i] += 1.0
-    high = (state[NWATCH, i] >= RELEASE_AFTER and state[ANCHOR, i] > 0.0
-            and y - state[ANCHOR, i] > RELEASE * r + state[JNOISE, i] + RIPPLE_K * rip
+    high = (state[NWATCH, i] >= RELEASE_AFTER and base > 0.0
+            and y - base > RELEASE * r + state[JNOISE, i] + RIPPLE_K * rip
             and a * state[GMAX, i] > (1.0 + RELEASE) * r)
     if high:  # (a rise in progress neither moves the anchor nor counts as ripple)
         state[HIGH, i] += 1.0
+    elif waiting:
+        state[HIGH, i] = 0.0
     else:
         state[HIGH, i] = 0.0
         if state[PREVY, i] > 0.0:
@@ -235,6 +251,25 @@ def _released(state, i, y, r, a):
             state[ANCHOR, i] = r
     state[PREVY, i] = y
     return state[HIGH, i] >= RELEASE_RUN
+
+
+@kernel
+def _let_go(state, i, y, r):
+    """The finger let go (estimate ``y``, target ``r``): the drive for the most responsive load
+    at once, in one block (a rise would hold the swing for its length), and a new command's
+    watch. Returns that drive."""
+    state[EST, i] = y
+    state[GHAT, i] = state[GMAX, i]  # what a start or target step now aims by
+    state[GLIVE, i] = 0.0
+    state[RSUM, i] = 0.0
+    state[RRUN, i] = 0.0
+    state[RREF, i] = 0.0
+    state[NREL, i] += 1.0
+    _watch_anew(state, i)
+    _pace_anew(state, i)
+    state[WAIT, i] = state[WARM, i]
+    state[BEFORE, i] = 0.0
+    return r / state[GMAX, i]
 
 
 @kernel
@@ -282,6 +317,10 @@ def _siblings_wait(state, index):
         k = index[SIBLING, i]
         while k != i:
             if state[ON, k] != 0.0:
+                # its own command unchanged, it reads on at its level meanwhile, give or take
+                # what the other's step may ring (the step's size again)
+                state[BEFORE, k] = max(state[BEFORE, k] if state[WAIT, k] > 0.0 else 0.0,
+                                       state[EST, k] * (1.0 + state[STEPPED, i]))
                 state[WAIT, k] = max(state[WAIT, k], state[WARM, k])
                 _watch_anew(state, k)
             k = index[SIBLING, k]
@@ -366,6 +405,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             a = r / state[GLIVE, i]
             state[TPREV, i] = r
             state[WAIT, i] = state[WARM, i] + max(0.0, state[RISE, i] - state[RISEK, i] - 1.0)
+            state[BEFORE, i] = 0.0
             _watch_anew(state, i)
             _pace_anew(state, i)
         elif state[ON, i] == 0.0 or r != state[TPREV, i]:
@@ -384,25 +424,25 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             state[TPREV, i] = r
             # the estimate answers the command once the rise has reached it and a window has passed
             state[WAIT, i] = state[WARM, i] + max(0.0, state[RISE, i] - state[RISEK, i] - 1.0)
+            state[BEFORE, i] = 0.0
             _watch_anew(state, i)
         elif state[WAIT, i] > 0.0:
             state[WAIT, i] -= 1.0
-            if not rising:
-                continue
-        elif _released(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]), r, a):
-            # the finger let go: the drive for the most responsive load at once, in one block (a
-            # rise would hold the swing for its length), and a new command's watch
-            a = r / state[GMAX, i]
-            state[EST, i] = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
-            state[GHAT, i] = state[GMAX, i]  # what a start or target step now aims by
-            state[GLIVE, i] = 0.0
-            state[RSUM, i] = 0.0
-            state[RRUN, i] = 0.0
-            state[RREF, i] = 0.0
-            state[NREL, i] += 1.0
-            _watch_anew(state, i)
-            _pace_anew(state, i)
-            state[WAIT, i] = state[WARM, i]
+            if state[BEFORE, i] > 0.0 and _released(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]),
+                                                    r, a, True):
+                a = _let_go(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]), r)
+                if rising:  # a release drops the drive in one block, whatever rise was under way
+                    state[RISEK, i] = state[RISE, i]
+                    rising = False
+            else:
+                if state[WAIT, i] == 0.0:  # the watch after the wait starts as it did without one
+                    state[NWATCH, i] = 0.0
+                    state[PREVY, i] = 0.0
+                    state[HIGH, i] = 0.0
+                if not rising:
+                    continue
+        elif _released(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]), r, a, False):
+            a = _let_go(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]), r)
         else:
             # every block from here on the estimate holds nothing but the present command: watch
             # it until it has been steady for HOLD blocks, then correct on the run's mean
@@ -519,6 +559,10 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             a = a * step
             _watch_anew(state, i)
             state[WAIT, i] = state[WARM, i]  # judge this command only once the estimate is all of it
+            # a step of drive may ring the plant by up to the step again (a loaded mode beside
+            # the tone beats with it: a 10 Hz tone under a stiff finger pressing, stepped x1.7,
+            # read 7 % over its new level)
+            state[BEFORE, i] = y * (max(1.0, step) + abs(step - 1.0))
             if (step > BIG_STEP or step * BIG_STEP < 1.0) and state[RISE, i] > 1.0:
                 state[A0, i] = state[OUT, i]  # from the drive now, not from 0
                 state[RISEK, i] = 0.0
@@ -546,7 +590,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             state[RISEK, i] += 1.0
             a = state[A0, i] + (a - state[A0, i]) * 0.5 * (1.0 - math.cos(math.pi * state[RISEK, i] / state[RISE, i]))
         if abs(a - state[OUT, i]) > AGREE * state[OUT, i]:
-            state[STEPPED, i] = 1.0
+            state[STEPPED, i] = abs(a - state[OUT, i]) / state[OUT, i] if state[OUT, i] > 0.0 else 1.0
         state[OUT, i] = a
         pending[P_AMP, b] = a
         pending[P_RAMP, b] = ramp
