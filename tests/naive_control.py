@@ -11,6 +11,7 @@ from rtctl.control._kernels import (
     ALL,
     AMAX,
     ANCHOR,
+    ANCHOR_RATE,
     BANK,
     BEFORE,
     BIG_STEP,
@@ -61,6 +62,7 @@ from rtctl.control._kernels import (
     RELEASE,
     RELEASE_AFTER,
     RELEASE_RUN,
+    RELNOW,
     REVERSAL,
     REVS,
     RIPPLE,
@@ -120,7 +122,8 @@ def _let_go(col, y, r, a, waiting=False):
         if col[PREVY] > 0:
             col[RIPPLE] = max(col[PREVY] - y, RIPPLE_DECAY * rip)
         if abs(y / r - 1) <= AGREE:
-            col[ANCHOR] = y
+            # the first on target is the anchor; later ones move it by ANCHOR_RATE / WARM of the way
+            col[ANCHOR] = y if col[ANCHOR] <= 0 else col[ANCHOR] + min(1.0, ANCHOR_RATE / col[WARM]) * (y - col[ANCHOR])
         elif y < r and a >= col[AMAX]:  # saturated under the target: a rise counts from the target
             col[ANCHOR] = r
     col[PREVY] = y
@@ -134,8 +137,26 @@ def _release(col, y, r):
     col[NREL] += 1
     _watch_anew(col)
     _pace_anew(col)
-    col[WAIT], col[BEFORE] = col[WARM], 0.0
+    col[WAIT], col[BEFORE], col[RELNOW] = col[WARM], 0.0, 1.0
     return r / col[GMAX]
+
+
+def _others_let_go(state, index, target, pending, ramp, stepped):
+    """Where a tone released, every other playing tone of its channel whose drive overshoots on
+    the lifted beam releases too, in the same block."""
+    for i in np.flatnonzero(state[RELNOW]):
+        for k in range(state.shape[1]):
+            col, r = state[:, k], target[TARGET, k]
+            if (k == i or index[OBS_CH, k] != index[OBS_CH, i] or not col[ON] or col[RELNOW] or col[JNOISE] < 0
+                    or not r > 0 or col[CMD] * col[GMAX] <= (1 + RELEASE) * r):
+                continue
+            a = min(_release(col, col[EST], r), col[AMAX])
+            col[RISEK], col[SAT], col[CMD] = col[RISE], 0.0, a
+            if abs(a - col[OUT]) > AGREE * col[OUT]:
+                stepped[k] = abs(a - col[OUT]) / col[OUT] if col[OUT] > 0 else 1.0
+            col[OUT] = a
+            b = index[BANK, k]
+            pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = a, ramp, 1.0
 
 
 def _others_wait(state, index, stepped):
@@ -164,6 +185,7 @@ def _ring_end(p1, p2, a, v1, v2, v3):
 def amplitude_control(est, drive_est, index, target, state, pending, lim_counts, ramp):
     status = 0
     stepped = np.zeros(state.shape[1])
+    state[RELNOW] = 0.0
     for i in range(state.shape[1]):
         b = index[BANK, i]
         col = state[:, i]
@@ -319,6 +341,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             stepped[i] = abs(a - col[OUT]) / col[OUT] if col[OUT] > 0 else 1.0
         col[OUT] = a
         pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = a, ramp, 1.0
+    _others_let_go(state, index, target, pending, ramp, stepped)
     _others_wait(state, index, stepped)
     state[STEPPED] = stepped
     state[LOWN] += state[LOW] != 0

@@ -59,8 +59,9 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  LOWN,    # blocks the command has been held at the floor since the controller's reset
  GMAX,    # the most tip per volt a device may have at the tone, m/V (GTOP without its margin)
  JNOISE,  # the release rule's noise allowance on a rise of the estimate, m (< 0: no release rule)
- ANCHOR,  # the latest fresh estimate of this command within AGREE of the target (the target itself
-          # while saturated under it), m (0: none)
+ ANCHOR,  # what a rise counts from: the first fresh estimate of this command within AGREE of the
+          # target, moved towards each later one by ANCHOR_RATE / WARM (the target itself while
+          # saturated under it), m (0: none)
  NREL,    # releases since the controller's reset
  PREVY,   # the previous watched block's fresh estimate, m (0: none since the last command)
  RIPPLE,  # how far fresh estimates fell from block to block of late, m (a decaying peak)
@@ -69,8 +70,9 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  BEFORE,  # while waiting out a correction's window: the most the estimate reads there on an unchanged
           # plant, the level corrected on times the step where it rose, and the step's size again
           # for the ring it may leave (0: not watched meanwhile), m
- ) = range(58)
-N_STATE = 58
+ RELNOW,  # 1: released in this block (its channel's other tones are released with it)
+ ) = range(59)
+N_STATE = 59
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -164,7 +166,8 @@ EXT_GAIN = 4.0
 #: above); one exactly on its mode's frequency does not, and is left to the other rules
 TURN = 0.1
 #: a release: a fresh estimate that rises more than this share of the target (and more than its
-#: noise, ``JNOISE``) above the latest on-target estimate of an unchanged command says the finger
+#: noise, ``JNOISE``) above the on-target estimates of an unchanged command (``ANCHOR``, which
+#: follows them slowly: ``ANCHOR_RATE``) says the finger
 #: let go (lifts off, or presses lighter). Where the rule is on (a long window, and the lifted
 #: beam the most responsive load the model knows: ``GMAX``), the drive drops at once to what puts
 #: the target on that load, which no device the model allows overshoots with, and the loop
@@ -197,6 +200,13 @@ RELEASE_AFTER = 3
 #: under the target); a lift-off keeps rising. On one estimate the drive had dropped 5x under the
 #: pressing finger
 RELEASE_RUN = 2
+#: The anchor a rise counts from: the first estimate of a command within AGREE of the target, and
+#: each later one moves it this many WARMs (a window and its latency) of the way per block: a
+#: finger's slow relaxation is followed, a lift-off's rise (the window filling with the lighter
+#: load over WARM blocks) outruns it. When each estimate within AGREE became the anchor, a rise
+#: that started slowly (a lift-off near the tip's zero crossing) carried it along and had to clear
+#: 2 % above up to 1.05 of the target (10 Hz lift-offs +16 % over the target at worst, +6 % now)
+ANCHOR_RATE = 4.0
 
 
 @kernel
@@ -243,7 +253,10 @@ def _released(state, i, y, r, a, waiting):
         if state[PREVY, i] > 0.0:
             state[RIPPLE, i] = max(state[PREVY, i] - y, RIPPLE_DECAY * rip)
         if abs(y / r - 1.0) <= AGREE:
-            state[ANCHOR, i] = y
+            if state[ANCHOR, i] > 0.0:
+                state[ANCHOR, i] += min(1.0, ANCHOR_RATE / state[WARM, i]) * (y - state[ANCHOR, i])
+            else:
+                state[ANCHOR, i] = y
         elif y < r and a >= state[AMAX, i]:
             # saturated under the target: a rise is measured from the target, which the tip
             # cannot pass unless the plant changed (a 40 Hz tone at its cap under 200 g rose to
@@ -269,6 +282,7 @@ def _let_go(state, i, y, r):
     _pace_anew(state, i)
     state[WAIT, i] = state[WARM, i]
     state[BEFORE, i] = 0.0
+    state[RELNOW, i] = 1.0
     return r / state[GMAX, i]
 
 
@@ -327,6 +341,32 @@ def _siblings_wait(state, index):
 
 
 @kernel
+def _siblings_let_go(state, index, target, pending, ramp):
+    """Where a tone released, the other tones of its channel that would overshoot on the lifted
+    beam drop with it, in the same block: the finger let go of the beam, not of one tone."""
+    for i in range(state.shape[1]):
+        if state[RELNOW, i] == 0.0:
+            continue
+        k = index[SIBLING, i]
+        while k != i:
+            r = target[TARGET, k]
+            if (state[ON, k] != 0.0 and state[RELNOW, k] == 0.0 and state[JNOISE, k] >= 0.0 and r > 0.0
+                    and state[CMD, k] * state[GMAX, k] > (1.0 + RELEASE) * r):
+                a = min(_let_go(state, k, state[EST, k], r), state[AMAX, k])
+                state[RISEK, k] = state[RISE, k]
+                state[SAT, k] = 0.0
+                state[CMD, k] = a
+                if abs(a - state[OUT, k]) > AGREE * state[OUT, k]:
+                    state[STEPPED, k] = abs(a - state[OUT, k]) / state[OUT, k] if state[OUT, k] > 0.0 else 1.0
+                state[OUT, k] = a
+                b = index[BANK, k]
+                pending[P_AMP, b] = a
+                pending[P_RAMP, b] = ramp
+                pending[P_FLAG, b] = 1.0
+            k = index[SIBLING, k]
+
+
+@kernel
 def _pace_anew(state, i):
     """The designed stretch again, and no hunting counted."""
     state[HOLD, i] = state[HOLD0, i]
@@ -362,6 +402,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
     n = state.shape[1]
     for i in range(n):
         state[STEPPED, i] = 0.0
+        state[RELNOW, i] = 0.0
         b = index[BANK, i]
         if target[ENABLE, i] == 0.0:
             state[LOW, i] = 0.0
@@ -595,6 +636,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         pending[P_AMP, b] = a
         pending[P_RAMP, b] = ramp
         pending[P_FLAG, b] = 1.0
+    _siblings_let_go(state, index, target, pending, ramp)
     _siblings_wait(state, index)
     for i in range(n):  # every block a tone is held at its floor, waiting or not
         if state[LOW, i] != 0.0:
