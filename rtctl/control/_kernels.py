@@ -189,23 +189,25 @@ RIPPLE_DECAY = 0.9
 #: ... and not before this many fresh estimates of the command have been watched (two moves from
 #: block to block seen: the ring a correction or an event leaves has shown its size)
 RELEASE_AFTER = 3
-#: While a correction's window slides past (``WAIT``), the estimate moves from the level the
-#: correction was made on to that times the step, no further on an unchanged plant (a window
-#: over a drive step reads as the tip's own lock-in does: docs/selfsense.md), so a finger
-#: letting go then shows as a rise over the larger of the two (``BEFORE``) by the same margin.
-#: Without this watch a lift-off in that window went unanswered until it passed (a 25 Hz tone
-#: corrected 55 blocks before the lift-off released 60 blocks after it, its tip 5x its target).
 #: ... in this many fresh estimates in a row. A finger pressing harder also lifts the first
 #: estimate after it, by its static step (+4 % at 80 Hz on a 20 mm beam, and the next one 6 %
 #: under the target); a lift-off keeps rising. On one estimate the drive had dropped 5x under the
 #: pressing finger
 RELEASE_RUN = 2
+# While a correction's window slides past (``WAIT``), the estimate moves from the level the
+# correction was made on to that times the step, no further on an unchanged plant but for the
+# ring the step leaves (a window over a drive step reads as the tip's own lock-in does:
+# docs/selfsense.md), so a finger letting go then shows as a rise over that (``BEFORE``) by the
+# release's margins. Without this watch a lift-off in that window went unanswered until it passed
+# (a 25 Hz tone on a 20 mm beam corrected 55 blocks before the lift-off released 60 blocks after
+# it, its tip 5x its target).
 #: The anchor a rise counts from: the first estimate of a command within AGREE of the target, and
 #: each later one moves it this many WARMs (a window and its latency) of the way per block: a
 #: finger's slow relaxation is followed, a lift-off's rise (the window filling with the lighter
 #: load over WARM blocks) outruns it. When each estimate within AGREE became the anchor, a rise
 #: that started slowly (a lift-off near the tip's zero crossing) carried it along and had to clear
-#: 2 % above up to 1.05 of the target (10 Hz lift-offs +16 % over the target at worst, +6 % now)
+#: 2 % above up to 1.05 of the target (10 Hz lift-offs +16 / +12 % over the target, worst / median
+#: over the control sweep's devices; +12 / +6 % now)
 ANCHOR_RATE = 4.0
 
 
