@@ -107,7 +107,8 @@ def _watch_anew(col):
 
 
 def _let_go(col, y, r, a, waiting=False):
-    """The release rule: a rise of the estimate above the latest on-target one, or while waiting
+    """The release rule: a rise of the estimate above the anchor (the first on-target estimate,
+    moved a little towards each later one), or while waiting
     out a correction's window (and after it, until an estimate comes on target) above what the
     correction explains."""
     if not (0 < y < math.inf and r > 0) or col[JNOISE] < 0:
