@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from rtctl import scene
+from rtctl.control._kernels import DEADBAND
 from rtctl.engine.rig import build
 from rtctl.engine.run import run
 
@@ -24,7 +25,13 @@ def test_reachable_targets_are_met_and_the_rest_saturate_honestly(closed):
         r = rows[name]
         assert r["controlled"] and not r["saturated"]
         assert abs(r["error_pct"]) < 1.0, r  # true amplitude against the target
-        assert abs(r["estimated_um"] / r["target_um"] - 1) < 2e-3, r  # the loop holds the estimate there
+        # the loop holds the estimate within its deadband of the target; the row's estimate is a
+        # median over the run's second half (0.75 s) of estimates whose noise the row states, each
+        # window one independent draw: at 250 Hz (0.16 um, 0.0025 um of noise, 4 ms windows) that
+        # median alone scatters by about 0.15 %, at 40 and 120 Hz by under 0.01 %
+        draws = 0.75 / r["observer_window_s"]
+        scatter = 1.25 * r["noise_um"] / r["target_um"] / np.sqrt(draws)
+        assert abs(r["estimated_um"] / r["target_um"] - 1) < DEADBAND + 3 * scatter, r
         assert r["felt"] is True
     for name in ("lateral.0", "lateral.1"):  # 2 and 10 Hz need more than 150 V under this finger
         r = rows[name]

@@ -360,10 +360,11 @@ class Rig:
         drive, and its final state is the run's. Called between blocks by the loop's thread."""
         if not self.controllers:
             return
-        from ..control._kernels import WAIT
+        from ..control._kernels import BEFORE, WAIT
 
         for _, _, ctl in self.controllers:
             ctl.state[WAIT] = np.inf  # a tone waiting for its estimate changes nothing
+            ctl.state[BEFORE] = 0.0  # ... nor watches for a finger letting go meanwhile
 
     def _start_controlled(self, i: int) -> bool:
         """The stimulus' start of bank tone ``i``: a controlled tone starts under control."""
