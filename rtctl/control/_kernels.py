@@ -343,6 +343,18 @@ def _siblings_wait(state, index):
 
 
 @kernel
+def _send(state, i, a, pending, b, ramp):
+    """Tone ``i``'s drive for the next block, ``a`` volts, to its oscillator ``b`` (ramped over
+    ``ramp`` samples); ``STEPPED`` where it moved by more than AGREE."""
+    if abs(a - state[OUT, i]) > AGREE * state[OUT, i]:
+        state[STEPPED, i] = abs(a - state[OUT, i]) / state[OUT, i] if state[OUT, i] > 0.0 else 1.0
+    state[OUT, i] = a
+    pending[P_AMP, b] = a
+    pending[P_RAMP, b] = ramp
+    pending[P_FLAG, b] = 1.0
+
+
+@kernel
 def _siblings_let_go(state, index, target, pending, ramp):
     """Where a tone released, the other tones of its channel that would overshoot on the lifted
     beam drop with it, in the same block: the finger let go of the beam, not of one tone."""
@@ -358,13 +370,7 @@ def _siblings_let_go(state, index, target, pending, ramp):
                 state[RISEK, k] = state[RISE, k]
                 state[SAT, k] = 0.0
                 state[CMD, k] = a
-                if abs(a - state[OUT, k]) > AGREE * state[OUT, k]:
-                    state[STEPPED, k] = abs(a - state[OUT, k]) / state[OUT, k] if state[OUT, k] > 0.0 else 1.0
-                state[OUT, k] = a
-                b = index[BANK, k]
-                pending[P_AMP, b] = a
-                pending[P_RAMP, b] = ramp
-                pending[P_FLAG, b] = 1.0
+                _send(state, k, a, pending, index[BANK, k], ramp)
             k = index[SIBLING, k]
 
 
@@ -632,12 +638,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if rising:  # block by block along a raised cosine from the last drive to the command
             state[RISEK, i] += 1.0
             a = state[A0, i] + (a - state[A0, i]) * 0.5 * (1.0 - math.cos(math.pi * state[RISEK, i] / state[RISE, i]))
-        if abs(a - state[OUT, i]) > AGREE * state[OUT, i]:
-            state[STEPPED, i] = abs(a - state[OUT, i]) / state[OUT, i] if state[OUT, i] > 0.0 else 1.0
-        state[OUT, i] = a
-        pending[P_AMP, b] = a
-        pending[P_RAMP, b] = ramp
-        pending[P_FLAG, b] = 1.0
+        _send(state, i, a, pending, b, ramp)
     _siblings_let_go(state, index, target, pending, ramp)
     _siblings_wait(state, index)
     for i in range(n):  # every block a tone is held at its floor, waiting or not
