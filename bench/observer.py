@@ -187,8 +187,8 @@ def timed(fn, args, calls, repeats):
 
 
 # what the stage took since the twin: the image loads' choice, the low-pass, a drive step's correction
-SINCE_TWIN = ("Hc", "pick", "resid", "contact", "lag", "pf", "pf_z", "pf_x", "pf_g", "d_ref", "d_pend", "d_chan",
-              "d_acc", "d_ring", "d_solve", "d_last", "dx", "invJ", "Kc")
+SINCE_TWIN = ("Hc", "pick", "resid", "contact", "lag", "pf", "pf_z", "pf_x", "pf_g", "d_acc", "d_edge",
+              "invJ", "Kc")
 
 
 def twin_args(st):
@@ -215,7 +215,8 @@ def alternate(st, calls, repeats):
 
 def steps_cost(st, calls, repeats):
     """(without, with) us per block: the stage without a drive step's correction (``Kc`` with no
-    rows: the first difference is neither taken nor demodulated) and as it runs, alternating."""
+    rows: the first difference's window sums are not formed, its hops' edge terms still are) and as
+    it runs, alternating."""
     with_ = tuple(st.args.values())
     a = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in st.args.items()}
     a["Kc"] = np.zeros((0, *a["Kc"].shape[1:]))

@@ -333,3 +333,43 @@ def test_least_squares_refuses_an_ill_conditioned_row():
     lock = LockIn(1, [[235.0, 265.0]], FS, 1600, lstsq=True)
     with pytest.raises(ValueError, match=r"set_freq: least-squares rows"):
         lock.set_freq([[240.0, 270.0]])
+
+
+@pytest.mark.parametrize("splits", [(), (5, 37, 38, 200, 517, 1111, 1500, 2222, 2999)])
+def test_edges_give_the_first_differences_window_sums(splits):
+    """``lockin_process_edges``: ``J S + (E - E')`` is the window sum of the first difference
+    ``x[n] - x[n-1]`` (``x[-1] = 0``) against the reference, summed here sample by sample in
+    numpy over the window of the last closed hop, with per-row windows, hops that do not divide
+    the blocks, and a signal that steps."""
+    rng = np.random.default_rng(7)
+    freqs = np.array([[50.0, 230.0], [1000.0, 0.0]])
+    windows = [48 * 20, 48 * 12]
+    lock = LockIn(2, freqs, FS, windows, hop=48)
+    n = 3000
+    x = rng.normal(size=(2, n)) + np.repeat(rng.normal(size=(2, n // 100)) * 5, 100, axis=1)
+    edge = np.zeros_like(lock.ring)
+    ed = np.zeros((2, lock.acc.shape[1]))
+    out = np.zeros((2, 2, 2))
+    dx = np.diff(x, axis=1, prepend=0.0)
+    cuts = sorted({0, n, *splits})
+    checked = 0
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        K.lockin_process_edges(*lock.args, np.ascontiguousarray(x[:, a:b]), out, edge, ed)
+        end = (b // 48) * 48
+        for r in range(2):
+            for k in range(2):
+                s = 2 * r + k
+                f = freqs[r, k]
+                if f <= 0.0 or end < windows[r]:
+                    continue
+                m = np.arange(end - windows[r], end)
+                theta = 2 * np.pi * np.array([naive_dsp.exact_cycles(f, FS, int(i)) for i in m])
+                want_s = np.sum(x[r, m] * np.exp(-1j * theta))
+                want_d = np.sum(dx[r, m] * np.exp(-1j * theta))
+                S = lock.acc[K.S_R, s] + 1j * lock.acc[K.S_I, s]
+                J = 1.0 - np.exp(-2j * np.pi * f / FS)
+                got_d = J * S + (ed[0, s] + 1j * ed[1, s])
+                assert S == pytest.approx(want_s, rel=1e-9, abs=1e-9 * np.abs(want_s))
+                assert abs(got_d - want_d) <= 1e-9 * np.sum(np.abs(x[r, m]))
+                checked += 1
+    assert checked >= 3  # (every slot of a block at least)

@@ -111,8 +111,8 @@ def test_observe_stage_is_bitwise_the_old_kernel():
     st_new = ObserverStage(obs, 2, np.zeros((n_ch, BLOCK)), np.zeros((2 * n_ch, BLOCK)), np.zeros(n_ch))
     st_old = ObserverStage(ref, 2, np.zeros((n_ch, BLOCK)), np.zeros((2 * n_ch, BLOCK)), np.zeros(n_ch))
     # the old kernel's slot there held the currents' outputs; it reads one image load, unfiltered
-    picking = ("Hc", "pick", "resid", "contact", "lag", "pf", "pf_z", "pf_x", "pf_g", "d_ref", "d_pend", "d_chan",
-               "d_acc", "d_ring", "d_solve", "d_last", "dx", "invJ", "Kc")
+    picking = ("Hc", "pick", "resid", "contact", "lag", "pf", "pf_z", "pf_x", "pf_g", "d_acc", "d_edge",
+               "invJ", "Kc")
     old_args = dict({k: v for k, v in st_old.args.items() if k not in picking}, back=i_out)
     for b in range(n_blocks):
         sl = slice(b * BLOCK, (b + 1) * BLOCK)

@@ -550,6 +550,28 @@ def _lockin_sums_out(acc, solve):
 
 
 @kernel
+def _lockin_edges(chan, acc, x, j, edge, ed, hop_index):
+    """At hop ``hop_index``'s close (its last sample ``j`` of ``x``, the reference after it in
+    ``acc[Z]``): its ``E = x[j] conj z`` into ``edge``'s ring row, and ``ed`` the window's ``E``
+    less the one before the window's first hop, which that row held (see
+    :func:`lockin_process_edges`; rows as :func:`_lockin_hop`'s)."""
+    ns = acc.shape[1]
+    s0 = 0
+    while s0 < ns:
+        s1 = _run_end(acc, s0)
+        idx = hop_index % max(1, int(acc[NHOP, s0]))
+        for s in range(s0, s1):
+            v = x[chan[s], j]
+            er = v * acc[Z_R, s]
+            ei = -v * acc[Z_I, s]
+            ed[0, s] = er - edge[idx, 0, s]
+            ed[1, s] = ei - edge[idx, 1, s]
+            edge[idx, 0, s] = er
+            edge[idx, 1, s] = ei
+        s0 = s1
+
+
+@kernel
 def _lockin_estimate(ref, acc):
     """Amplitude and phase of every slot from the window sum its estimate is made of
     (:func:`_lockin_sums_out`; once per call, not per hop); the scale is one per run of slots with
@@ -598,8 +620,29 @@ def lockin_process(ref, pending, chan, acc, ring, solve, x, out):
     """
     if ref.shape[1] == 0:
         return
-    if lockin_sums(ref, pending, chan, acc, ring, solve, x):
+    if _lockin_run(ref, pending, chan, acc, ring, solve, x, ring, acc, False):
         _lockin_estimate(ref, acc)
+    _lockin_out(acc, out)
+
+
+@kernel
+def lockin_process_edges(ref, pending, chan, acc, ring, solve, x, out, edge, ed):
+    """:func:`lockin_process` that also keeps what a lock-in of ``x``'s first difference needs
+    beyond ``x``'s own window sums. With ``z`` the reference (rotating by ``exp(j w)`` per sample)
+    and ``J = 1 - exp(-j w)``, a hop's sum of ``(x[n] - x[n-1]) conj z[n]`` is ``J`` times its sum
+    of ``x[n] conj z[n]`` plus ``E - E'``, where ``E = x[b] conj z[b + 1]`` at the hop's last
+    sample ``b`` and ``E'`` the hop before's (0 before the first sample); over a window the ``E``
+    telescope to its two ends. ``edge`` (shaped as ``ring``) holds each hop's ``E``, ``ed[0:2]``
+    the window's ``E - E'`` (real, imaginary) after the last hop closed in this call."""
+    if ref.shape[1] == 0:
+        return
+    if _lockin_run(ref, pending, chan, acc, ring, solve, x, edge, ed, True):
+        _lockin_estimate(ref, acc)
+    _lockin_out(acc, out)
+
+
+@kernel
+def _lockin_out(acc, out):
     n_freq = out.shape[1]
     for r in range(out.shape[0]):
         for k in range(n_freq):
@@ -613,6 +656,12 @@ def lockin_sums(ref, pending, chan, acc, ring, solve, x):
     sums: ``acc[X_R]``, ``acc[X_I]`` (and ``acc[Z_R]``, ``acc[Z_I]``) are updated as there,
     ``acc[EST_A]``, ``acc[EST_P]`` are left as they were (a ``hypot`` and an ``atan2`` per slot and
     call saved). Returns whether a hop closed in this call (the sums then changed)."""
+    return _lockin_run(ref, pending, chan, acc, ring, solve, x, ring, acc, False)
+
+
+@kernel
+def _lockin_run(ref, pending, chan, acc, ring, solve, x, edge, ed, edges):
+    """:func:`lockin_sums`, and where ``edges`` :func:`_lockin_edges` at every hop's close."""
     ns = ref.shape[1]
     if ns == 0:
         return False
@@ -632,6 +681,8 @@ def lockin_sums(ref, pending, chan, acc, ring, solve, x):
         _osc_advance(ref, m)
         if (clock + m) % hop == 0:
             _lockin_hop(ref, acc, ring, (clock + m) // hop - 1)
+            if edges:
+                _lockin_edges(chan, acc, x, t + m - 1, edge, ed, (clock + m) // hop - 1)
             closed = True
         t += m
     if closed:

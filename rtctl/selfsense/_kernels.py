@@ -49,6 +49,7 @@ SWITCH = 0.25
 
 _ZR, _ZI, _WR, _WI = _dk.ZR, _dk.ZI, _dk.WR, _dk.WI
 _XR, _XI = _dk.X_R, _dk.X_I  # the window sums the lock-ins' estimates are made of
+_SR, _SI, _AR, _AI, _ZAR, _ZAI = _dk.S_R, _dk.S_I, _dk.ACC_R, _dk.ACC_I, _dk.Z_R, _dk.Z_I
 # Fewest slots for which the waveform is rebuilt with the slots innermost (as vector lanes): the
 # crossover measured against one chain per slot (bench/observer.py's parts, 1-48 slots)
 _LANES = 8
@@ -57,8 +58,7 @@ _LANES = 8
 @kernel
 def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring,
                      i_solve, u_out, back, H, Hc, pick, resid, contact, lag, scale, est, wave, pf, pf_z,
-                     pf_x, pf_g, d_ref, d_pend, d_chan, d_acc, d_ring, d_solve, d_last, dx, invJ, Kc, drive,
-                     sensed):
+                     pf_x, pf_g, d_acc, d_edge, invJ, Kc, drive, sensed):
     """One block: low-pass drive and currents (:func:`_prefilter`), demodulate them, take each
     channel's image load (:func:`_pick_load`), apply the observer, rebuild the tip waveform.
 
@@ -103,13 +103,14 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     pf_g : ndarray, shape (n_ch, n_tones, 2)
         ``1 / |G|`` and ``arg G`` of that response at each tone (1 and 0 unfiltered): ``u_out``
         is the drive's, as sent.
-    d_ref, d_pend, d_chan, d_acc, d_ring, d_solve : ndarray
-        Lock-in of the drive's first difference (as the drive's lock-in reads the drive, after
-        the low-pass), slots ``(n_ch, n_tones)``.
-    d_last : ndarray, shape (n_ch,)
-        The last drive sample of the previous block (the first difference's memory); updated.
-    dx : ndarray, shape (n_ch, n)
-        Scratch: this block's first differences.
+    d_acc : ndarray, shape like ``u_acc``
+        The drive's first difference (as the drive's lock-in reads the drive, after the
+        low-pass) over the same windows, as a lock-in's sums: rows ``ACC_R``, ``ACC_I`` the edge
+        term of each slot's window (kept every block), ``S`` its window sum ``J S_u + (E - E')``
+        and ``X`` that solved as the drive's is (``lockin_process_edges``; formed only where
+        ``Kc`` has rows); ``HOP``, ``NHOP``, ``LSQ`` as ``u_acc``'s.
+    d_edge : ndarray, shape like ``u_ring``
+        Each hop's edge term ``E`` (``lockin_process_edges``); updated.
     invJ : ndarray, shape (n_ch, n_tones, 2)
         ``1 / (1 - exp(-j w / fs))`` per slot (real, imaginary): a steady tone's first
         difference over its phasor, inverted.
@@ -127,14 +128,16 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     int
         0, or ``STATUS_NONFINITE`` if any estimate is NaN/Inf.
     """
+    # (the drive's lock-in keeps its hops' edge terms too: what the first difference's window sums
+    # need beyond the drive's, one product per slot and hop instead of a third lock-in)
     if pf.shape[0] == 0:  # no channel low-passed: the lock-ins read the block as it came
-        _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out)
+        _dk.lockin_process_edges(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, drive, u_out, d_edge, d_acc)
         _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, sensed)
     else:
         n_d = drive.shape[0]
         _prefilter(pf, pf_z, drive, pf_x, 0)
         _prefilter(pf, pf_z, sensed, pf_x, n_d)
-        _dk.lockin_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, pf_x[:n_d], u_out)
+        _dk.lockin_process_edges(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, pf_x[:n_d], u_out, d_edge, d_acc)
         for c in range(u_out.shape[0]):
             for k in range(u_out.shape[1]):
                 u_out[c, k, 0] *= pf_g[c, k, 0]
@@ -142,14 +145,17 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
         _dk.lockin_sums(i_ref, i_pend, i_chan, i_acc, i_ring, i_solve, pf_x[n_d:])
     steps = Kc.shape[0] > 0
     if steps:
-        x = drive if pf.shape[0] == 0 else pf_x[:drive.shape[0]]
-        for c in range(x.shape[0]):
-            prev = d_last[c]
-            for n in range(x.shape[1]):
-                dx[c, n] = x[c, n] - prev
-                prev = x[c, n]
-            d_last[c] = prev
-        _dk.lockin_sums(d_ref, d_pend, d_chan, d_acc, d_ring, d_solve, dx)
+        for s in range(u_acc.shape[1]):
+            # J = 1 - exp(-j w), w the reference's step per sample
+            jr = 1.0 - u_ref[_WR, s]
+            ji = u_ref[_WI, s]
+            sr = u_acc[_SR, s]
+            si = u_acc[_SI, s]
+            d_acc[_SR, s] = jr * sr - ji * si + d_acc[_AR, s]
+            d_acc[_SI, s] = jr * si + ji * sr + d_acc[_AI, s]
+            d_acc[_ZAR, s] = u_acc[_ZAR, s]
+            d_acc[_ZAI, s] = u_acc[_ZAI, s]
+        _dk._lockin_sums_out(d_acc, u_solve)
     if Hc.shape[2] > 1:
         _pick_load(u_acc, i_acc, H, Hc, pick, resid, contact, lag, scale)
     n_ch, n_t, n_est = est.shape[0], est.shape[1], est.shape[2]

@@ -8,6 +8,7 @@ from fractions import Fraction
 import numpy as np
 import scipy.signal
 
+from rtctl.dsp import _kernels as _dk
 from rtctl.dsp.lockin import MAX_LSQ_COND, LockIn, lsq_gram
 from rtctl.errors import ModelError
 from rtctl.selfsense import _kernels
@@ -463,7 +464,6 @@ class Observer:
             self.lock_u = LockIn(n_ch, f, fs, self.windows, hop=self.hop, lstsq=self.lstsq)
             self.lock_i = LockIn(n_ch * n_seg, np.repeat(f, n_seg, axis=0), fs, np.repeat(self.windows, n_seg),
                                  hop=self.hop, lstsq=np.repeat(self.lstsq, n_seg))
-            self.lock_d = LockIn(n_ch, f, fs, self.windows, hop=self.hop, lstsq=self.lstsq)
         except ValueError as e:
             raise ModelError(f"observer lock-in: {e}") from None
         self.est = np.zeros((n_ch, n_t, N_EST, 2))
@@ -529,8 +529,9 @@ class Observer:
         whole periods does not have. The observer cancels a drive term against the currents' that
         is tens of times the tip's share at low tones, so such a window read the tip at up to 4-5
         times its true amplitude. The drive's first difference is demodulated beside it
-        (``lock_d``): ``D / J - U`` (``J = 1 - exp(-j w / fs)``, exactly 0 for a steady tone over
-        any window) is that boundary term in drive volts, and ``Kc`` (each candidate load's
+        (``D``, from the drive's own window sums and the drive samples at its hops' edges:
+        ``lockin_process_edges``): ``D / J - U`` (``J = 1 - exp(-j w / fs)``, exactly 0 for a
+        steady tone over any window) is that boundary term in drive volts, and ``Kc`` (each candidate load's
         segment readings per drive volt at the tone, the drive staircase's folded images
         included, through the observer's current columns) is what it puts in each estimate row,
         which the kernel takes out. What is left is the tip's own transient (the beam's ring):
@@ -539,8 +540,9 @@ class Observer:
         (tests/test_observer_steps.py)."""
         n_ch, n_t, n_q = self.n_channels, self.n_tones, self.Hc.shape[2]
         self.steps = steps
-        self._d_last = np.zeros(n_ch)
-        self._dx = np.zeros((n_ch, self.block))
+        self._d_acc = np.zeros_like(self.lock_u.acc)
+        self._d_edge = np.zeros_like(self.lock_u.ring)
+        self._reset_steps()
         self.invJ = np.zeros((n_ch, n_t, 2))
         self.Kc = np.zeros((n_ch if steps else 0, n_t, n_q, N_EST, 2))
         if not steps:
@@ -571,13 +573,20 @@ class Observer:
                     self.Kc[c, k, q, :, 0] = kq.real
                     self.Kc[c, k, q, :, 1] = kq.imag
 
+    def _reset_steps(self) -> None:
+        """The first difference's sums empty, laid out as the drive's lock-in's."""
+        self._d_acc[:] = 0.0
+        for row in (_dk.HOP, _dk.NHOP, _dk.LSQ):
+            self._d_acc[row] = self.lock_u.acc[row]
+        self._d_edge[:] = 0.0
+
     @property
     def args(self) -> tuple:
         """Kernel arguments: ``observer_process(*args, drive, sensed)``."""
         return (*self.lock_u.args, *self.lock_i.args, self.u_out, self._back, self.H, self.Hc,
                 self.pick, self.resid, self.contact, self.lag, self.scale, self.est, self.wave,
-                self._pf, self._pf_z, self._pf_x, self._pf_g, *self.lock_d.args, self._d_last, self._dx,
-                self.invJ, self.Kc)
+                self._pf, self._pf_z, self._pf_x, self._pf_g, self._d_acc, self._d_edge, self.invJ,
+                self.Kc)
 
     def process(self, drive, sensed) -> int:
         """Advance by one block.
@@ -604,8 +613,7 @@ class Observer:
         """Empty windows, references at phase 0, every channel back on the first image load."""
         self.lock_u.reset()
         self.lock_i.reset()
-        self.lock_d.reset()
-        self._d_last[:] = 0.0
+        self._reset_steps()
         self._pf_z[:] = 0.0
         if self.Hc.shape[2] > 1:
             self.H[...] = self.Hc[:, :, 0]

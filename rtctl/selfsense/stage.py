@@ -23,8 +23,7 @@ from .rt import ObserverRows, observer_process
 @kernel
 def observe_stage(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring, i_solve,
                   u_out, back, H, Hc, pick, resid, contact, lag, scale, est, wave, pf, pf_z, pf_x, pf_g,
-                  d_ref, d_pend, d_chan, d_acc, d_ring, d_solve, d_last, dx, invJ, Kc, delay, head, out, sensed,
-                  amp):
+                  d_acc, d_edge, invJ, Kc, delay, head, out, sensed, amp):
     """Observe one block and push this block's drive into the delay ring.
 
     Parameters
@@ -51,8 +50,7 @@ def observe_stage(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, 
     k = head[0]
     s = observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pend, i_chan, i_acc, i_ring, i_solve,
                          u_out, back, H, Hc, pick, resid, contact, lag, scale, est, wave, pf, pf_z, pf_x,
-                         pf_g, d_ref, d_pend, d_chan, d_acc, d_ring, d_solve, d_last, dx, invJ, Kc, delay[k],
-                         sensed)
+                         pf_g, d_acc, d_edge, invJ, Kc, delay[k], sensed)
     delay[k, :, :] = out
     head[0] = (k + 1) % delay.shape[0]
     for c in range(est.shape[0]):
@@ -69,8 +67,8 @@ class ObserverStage:
 
     ARG_NAMES = ("u_ref", "u_pend", "u_chan", "u_acc", "u_ring", "u_solve", "i_ref", "i_pend", "i_chan", "i_acc",
                  "i_ring", "i_solve", "u_out", "back", "H", "Hc", "pick", "resid", "contact", "lag", "scale", "est",
-                 "wave", "pf", "pf_z", "pf_x", "pf_g", "d_ref", "d_pend", "d_chan", "d_acc", "d_ring", "d_solve",
-                 "d_last", "dx", "invJ", "Kc", "delay", "head", "out", "sensed", "amp")
+                 "wave", "pf", "pf_z", "pf_x", "pf_g", "d_acc", "d_edge", "invJ", "Kc", "delay", "head", "out",
+                 "sensed", "amp")
 
     def __init__(self, observer, latency_blocks: int, out, sensed, amp):
         self.observer = observer
