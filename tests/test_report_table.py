@@ -1,6 +1,7 @@
 """The per-channel table ``rtctl run`` prints: a channel of several tones lists every tone's
-frequency (a beat pair is one tone, at its carrier), and a saturated tone that has only a share of
-its channel's max_voltage says so, with the share in volts."""
+frequency (a beat pair is one tone, at its carrier), as the plot's panel titles do, and a
+saturated tone that has only a share of its channel's max_voltage says so, with the share in
+volts."""
 
 from __future__ import annotations
 
@@ -96,3 +97,20 @@ def test_a_played_signals_voices_are_listed_once_per_frequency(tmp_path):
     end = head.index("freq Hz") + len("freq Hz")
     line = _line(lines, "lateral.0")
     assert line[:end].endswith(" 212+146") and "(saturated at its share of max_voltage, 50 V" in line
+
+
+def test_every_tone_of_a_channel_is_in_its_plot_panels_title(tmp_path, monkeypatch):
+    """The plot's panel titles, like the table, showed only a channel's first tone."""
+    import matplotlib.figure
+
+    titles = []
+
+    def keep(fig, *a, **k):
+        titles.extend(ax.get_title(loc="left") for ax in fig.axes)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    run(scene.load("line-bimorph-5-closed", ["timing.duration=0.1", "events=[]", TONES]), out_dir=tmp_path)
+    want = {"lateral.0": "40+250 Hz", "lateral.1": "120+180.5+250.25 Hz", "lateral.2": "250 Hz"}
+    for name, text in want.items():
+        got = [x for x in titles if x.startswith(name + " ")]
+        assert len(got) == 1 and f" {text} " in got[0], (name, titles)

@@ -405,16 +405,19 @@ def _fmt(v, spec: str) -> str:
     return f"{'-':>{width}}" if v is None else format(v, spec)
 
 
+def freq_label(row: dict, spec: str) -> str:
+    """A summary row's frequency as the table and the plot show it: a channel of several tones
+    lists their frequencies ("40+250"), each once (a played signal's voices often share one)."""
+    tones = list(dict.fromkeys(row.get("tones_hz") or ()))
+    return _fmt(row["freq_hz"], spec) if len(tones) < 2 else "+".join(f"{x:g}" for x in tones)
+
+
 def print_table(summary: dict) -> None:
     """The per-channel table ``rtctl run`` prints."""
     print(f"{summary['scene']}: {summary['duration_s']:g} s at {summary['fs']:g} Hz, block {summary['block']}, "
           f"real-time factor {summary['realtime_factor']:.1f}, block time p99 "
           f"{summary['block_time_us']['p99']:.1f} us, deadline misses {summary['deadline_misses']}")
-    # a channel of several tones lists their frequencies ("40+250"), each once (a played signal's
-    # voices often share one); the column widens only for such a list
-    tones = [list(dict.fromkeys(r.get("tones_hz") or ())) for r in summary["channels"]]
-    freqs = [_fmt(r["freq_hz"], ".1f") if len(f) < 2 else "+".join(f"{x:g}" for x in f)
-             for r, f in zip(summary["channels"], tones)]
+    freqs = [freq_label(r, ".1f") for r in summary["channels"]]  # the column widens only for a list
     w = max([9] + [len(f) + 1 for f in freqs])
     head = f"{'channel':<12}{'receptor':<10}{'freq Hz':>{w}}{'V peak':>8}{'true um':>10}{'thresh um':>10}" \
            f"{'target um':>10}{'error %':>9}{'settle ms':>10}  felt"
@@ -558,7 +561,7 @@ def plot(summary: dict, reader, path, n_run_blocks: int, max_rows: int = 8) -> N
         ax = fig.add_subplot(gs[i, 0])
         ax.plot(*_envelope(t, reader.signal("drive", ch)[:n]), lw=0.6, color="C0")
         ax.set_ylabel("drive V")
-        ax.set_title(f"{r['name']}  {_fmt(r['freq_hz'], '.0f')} Hz  {r['receptor'] or ''}", fontsize=9, loc="left")
+        ax.set_title(f"{r['name']}  {freq_label(r, '.0f')} Hz  {r['receptor'] or ''}", fontsize=9, loc="left")
         if r.get("controlled"):
             bx = fig.add_subplot(gs[i, 1], sharex=ax)
             _amplitude_panel(bx, r, reader, ch, t, n, has_tip)
