@@ -318,8 +318,8 @@ class Observer:
         observer matrices and the drive's reading, so steady estimates are unchanged.
     steps : bool
         Take a drive step's boundary term out of the windows that hold one (default): without
-        it, such a window reads the tip several times too large (``_steps_design``; the first
-        difference's lock-in costs the stage 13-24 %).
+        it, such a window reads the tip several times too large (``_steps_design``; it costs the
+        stage 2-7 %, bench/observer.py).
     max_cond : float
         Refuse ill-conditioned frequencies (also for four segments, whose tip estimate is less
         fragile than the support stiffness that :func:`~rtctl.selfsense.observer.design` guards
@@ -528,16 +528,16 @@ class Observer:
         the signal by a boundary term, ``C (v(end) - v(start))`` rotated, which a steady tone over
         whole periods does not have. The observer cancels a drive term against the currents' that
         is tens of times the tip's share at low tones, so such a window read the tip at up to 4-5
-        times its true amplitude. The drive's first difference is demodulated beside it
-        (``D``, from the drive's own window sums and the drive samples at its hops' edges:
-        ``lockin_process_edges``): ``D / J - U`` (``J = 1 - exp(-j w / fs)``, exactly 0 for a
-        steady tone over any window) is that boundary term in drive volts, and ``Kc`` (each candidate load's
-        segment readings per drive volt at the tone, the drive staircase's folded images
-        included, through the observer's current columns) is what it puts in each estimate row,
-        which the kernel takes out. What is left is the tip's own transient (the beam's ring):
-        a window over a step then reads the tip as a lock-in of the true tip over it does, within
-        1-2 % at 10-40 Hz, 8 % at 250 Hz and 13 % at 1 kHz, where it was off by 65-190 %
-        (tests/test_observer_steps.py)."""
+        times its true amplitude. The lock-in of the drive's first difference over the same
+        windows (``D``, formed from the drive's own window sums and the drive samples at its
+        hops' edges: ``lockin_process_edges``) gives ``D / J - U`` (``J = 1 - exp(-j w / fs)``,
+        exactly 0 for a steady tone over any window): that boundary term in drive volts. ``Kc``
+        (each candidate load's segment readings per drive volt at the tone, the drive
+        staircase's folded images included, through the observer's current columns) is what it
+        puts in each estimate row, which the kernel takes out. What is left is the tip's own
+        transient (the beam's ring): a window over a step then reads the tip as a lock-in of the
+        true tip over it does, within 1-2 % at 10-40 Hz, 8 % at 250 Hz and 13 % at 1 kHz, where
+        it was off by 65-190 % (tests/test_observer_steps.py)."""
         n_ch, n_t, n_q = self.n_channels, self.n_tones, self.Hc.shape[2]
         self.steps = steps
         self._d_acc = np.zeros_like(self.lock_u.acc)
