@@ -618,11 +618,7 @@ def lockin_process(ref, pending, chan, acc, ring, solve, x, out):
     out : ndarray, shape (n_channels, n_freq, 2), float64
         Amplitude (peak) and phase (rad) at the last complete hop; NaN for unused slots.
     """
-    if ref.shape[1] == 0:
-        return
-    if _lockin_run(ref, pending, chan, acc, ring, solve, x, ring, acc, False):
-        _lockin_estimate(ref, acc)
-    _lockin_out(acc, out)
+    _lockin_process(ref, pending, chan, acc, ring, solve, x, out, ring, acc, False)
 
 
 @kernel
@@ -634,15 +630,15 @@ def lockin_process_edges(ref, pending, chan, acc, ring, solve, x, out, edge, ed)
     sample ``b`` and ``E'`` the hop before's (0 before the first sample); over a window the ``E``
     telescope to its two ends. ``edge`` (shaped as ``ring``) holds each hop's ``E``, ``ed[0:2]``
     the window's ``E - E'`` (real, imaginary) after the last hop closed in this call."""
-    if ref.shape[1] == 0:
-        return
-    if _lockin_run(ref, pending, chan, acc, ring, solve, x, edge, ed, True):
-        _lockin_estimate(ref, acc)
-    _lockin_out(acc, out)
+    _lockin_process(ref, pending, chan, acc, ring, solve, x, out, edge, ed, True)
 
 
 @kernel
-def _lockin_out(acc, out):
+def _lockin_process(ref, pending, chan, acc, ring, solve, x, out, edge, ed, edges):
+    if ref.shape[1] == 0:
+        return
+    if _lockin_run(ref, pending, chan, acc, ring, solve, x, edge, ed, edges):
+        _lockin_estimate(ref, acc)
     n_freq = out.shape[1]
     for r in range(out.shape[0]):
         for k in range(n_freq):
