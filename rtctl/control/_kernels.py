@@ -430,12 +430,13 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         state[LIMSEEN, i] = lim
         a = state[CMD, i]
         c, j = index[OBS_CH, i], index[OBS_SLOT, i]
+        y_now = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])  # the latest estimate's amplitude
         rising = state[RISEK, i] < state[RISE, i]
         if state[ON, i] != 0.0 and not rising:
             # the plant's tip per volt over the latest window, whatever the drive did in it (a
             # target that moves every block never gives a window of one command)
             u = drive_est[c, j, 0]
-            y = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
+            y = y_now
             if u >= LIVE_DRIVE * a and u > 0.0 and y > 0.0 and y < math.inf:
                 # followed in stretches as the estimate is: a swell's windows lag their drive
                 # (the tip rings up behind it), and a gain taken from every window at once would
@@ -477,9 +478,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             _watch_anew(state, i)
         elif state[WAIT, i] > 0.0:
             state[WAIT, i] -= 1.0
-            if state[BEFORE, i] > 0.0 and _released(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]),
-                                                    r, a, True):
-                a = _let_go(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]), r)
+            if state[BEFORE, i] > 0.0 and _released(state, i, y_now, r, a, True):
+                a = _let_go(state, i, y_now, r)
                 if rising:  # a release drops the drive in one block, whatever rise was under way
                     state[RISEK, i] = state[RISE, i]
                     rising = False
@@ -490,12 +490,12 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                     state[HIGH, i] = 0.0
                 if not rising:
                     continue
-        elif _released(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]), r, a, False):
-            a = _let_go(state, i, math.hypot(est[c, j, 0, 0], est[c, j, 0, 1]), r)
+        elif _released(state, i, y_now, r, a, False):
+            a = _let_go(state, i, y_now, r)
         else:
             # every block from here on the estimate holds nothing but the present command: watch
             # it until it has been steady for HOLD blocks, then correct on the run's mean
-            y = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])
+            y = y_now
             state[EST, i] = y
             if not (y > 0.0 and y < math.inf and r > 0.0):
                 state[FROZEN, i] = 1.0  # hold the drive: never raise it on a bad estimate
