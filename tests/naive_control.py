@@ -24,13 +24,16 @@ from rtctl.control._kernels import (
     EXT_GAIN,
     FAR,
     FF,
+    FITY,
     FROZEN,
+    FSWING,
     GAIN,
     GHAT,
     GLIVE,
     GMAX,
     GTOP,
     HIGH,
+    HIST,
     HOLD,
     HOLD0,
     HOLDMAX,
@@ -42,6 +45,8 @@ from rtctl.control._kernels import (
     LOWN,
     MAX_STEP,
     NALL,
+    NH,
+    NOISE,
     NOISE_Z,
     NREL,
     NSTR,
@@ -65,11 +70,18 @@ from rtctl.control._kernels import (
     RELNOW,
     REVERSAL,
     REVS,
+    RING_K,
+    RING_MOVE,
+    RING_NOISE,
+    RING_RES,
+    RING_RHO,
+    RINGED,
     RIPPLE,
     RIPPLE_DECAY,
     RIPPLE_K,
     RISE,
     RISEK,
+    ROT,
     RREF,
     RRUN,
     RSUM,
@@ -104,6 +116,7 @@ def _pace_anew(col):
 def _watch_anew(col):
     col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
     col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = col[ANCHOR] = col[PREVY] = col[NWATCH] = col[HIGH] = 0.0
+    col[NH] = col[FITY] = col[RINGED] = 0.0
 
 
 def _let_go(col, y, r, a, waiting=False):
@@ -183,6 +196,34 @@ def _ring_end(p1, p2, a, v1, v2, v3):
     return -1.0
 
 
+def _ring_fit(col):
+    """The last RING_K fresh estimates as a steady phasor and one real mode's ring: after turning
+    the first differences back by the tone's own turn per block, each is a real combination of
+    the two before it (least squares over real and imaginary parts); the steady phasor is what
+    that recursion leaves fixed. Returns its amplitude, or -1."""
+    k = int(col[NH]) % RING_K
+    w = np.roll(col[HIST:HIST + 2 * RING_K:2] + 1j * col[HIST + 1:HIST + 2 * RING_K:2], -k)  # oldest first
+    if not np.abs(w - w[-1]).max() > max(0.5 * STILL * abs(w[-1]), RING_NOISE * col[NOISE]):
+        return -1.0  # estimates that barely move, or move by their noise, hold no ring worth fitting
+    d = np.diff(w)
+    x = d * np.exp(1j * col[ROT] * np.arange(d.size))
+    m = np.column_stack([x[1:-1], x[:-2]])
+    m, rhs = np.vstack([m.real, m.imag]), np.r_[x[2:].real, x[2:].imag]
+    g = m.T @ m
+    if not np.linalg.det(g) > 1e-9 * g[0, 0] * g[1, 1]:
+        return -1.0
+    coef = np.linalg.solve(g, m.T @ rhs)
+    if not np.sum((m @ coef - rhs) ** 2) <= RING_RES ** 2 * np.sum(np.abs(d) ** 2):
+        return -1.0
+    roots = np.roots([1.0, -coef[0], -coef[1]]) * np.exp(-1j * col[ROT])
+    if not (np.abs(roots).max() <= RING_RHO and np.abs(1.0 - roots).min() >= RING_MOVE):
+        return -1.0
+    c1, c2 = coef[0] * np.exp(-1j * col[ROT]), coef[1] * np.exp(-2j * col[ROT])
+    steady = np.mean(w[2:] - c1 * w[1:-1] - c2 * w[:-2]) / (1.0 - c1 - c2)
+    col[FSWING] = np.abs(w - steady).max()
+    return abs(steady) if col[FSWING] > STILL * abs(steady) and abs(steady) < math.inf else -1.0
+
+
 def amplitude_control(est, drive_est, index, target, state, pending, lim_counts, ramp):
     status = 0
     stepped = np.zeros(state.shape[1])
@@ -247,54 +288,71 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 col[FROZEN] = 1.0
                 col[REF] = col[SUM] = col[SQ] = col[RUN] = col[ALL] = col[NALL] = 0.0
                 col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = 0.0
-                col[ANCHOR] = col[PREVY] = col[NWATCH] = col[HIGH] = 0.0
+                col[ANCHOR] = col[PREVY] = col[NWATCH] = col[HIGH] = col[NH] = col[FITY] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             col[FROZEN] = 0.0
             col[GHAT] = y / a
             col[TRIES] += 1
-            col[SUM] += y
-            col[SQ] += y * y
-            col[SUMR] += est[c, j, 0, 0]
-            col[SUMI] += est[c, j, 0, 1]
-            col[RUN] += 1
-            col[ALL] += y
-            col[NALL] += 1
-            if col[RUN] < col[HOLD]:
-                continue
-            mean, prev, prev_var = col[SUM] / col[RUN], col[REF], col[REFV]
-            var = max(col[SQ] / col[RUN] - mean * mean, 0.0) / col[RUN]
-            phasor = complex(col[SUMR], col[SUMI]) / col[RUN]
-            p1, p2 = complex(col[P1R], col[P1I]), complex(col[P2R], col[P2I])
-            end, moving = -1.0, False
-            if col[SLOW]:
-                end = _ring_end(p1, p2, phasor, col[P1V], prev_var, var) if col[NSTR] >= 2 else -1.0
-                moving = col[NSTR] >= 1 and abs(phasor - p2) > max(STILL * mean, NOISE_Z * math.sqrt(var + prev_var))
-            young, end_before = col[NSTR] < 2, col[SPREV]
-            col[SPREV] = max(end, 0.0)
-            col[P1R], col[P1I], col[P1V], col[P2R], col[P2I] = p2.real, p2.imag, prev_var, phasor.real, phasor.imag
-            col[NSTR] += 1
-            col[SUMR] = col[SUMI] = 0.0
-            if prev > 0 and abs(mean / prev - 1) > CHANGED:
-                _pace_anew(col)
-            col[REF], col[REFV], col[SUM], col[SQ], col[RUN] = mean, var, 0.0, 0.0, 0.0
-            agree = prev > 0 and abs(mean / prev - 1) <= AGREE
-            far_agree = (col[SCATTER] != 0 and abs(r / mean - 1) > FAR
-                         and abs(mean - prev) <= NOISE_Z * math.sqrt(var + prev_var))
-            if agree and moving and end < 0 and young:
-                continue
-            if agree and moving and end > 0:
-                mean, g = end, col[GAIN]
-            elif end > 0 and end_before > 0 and abs(end / end_before - 1) <= AGREE:
-                mean, g = end, col[GAIN]
-            elif agree or (prev > 0 and far_agree):
-                if abs(r / mean - 1) <= AGREE and not moving:
-                    mean = col[ALL] / col[NALL]
-                g = col[GAIN]
-            elif col[TRIES] >= PATIENCE * (col[WARM] + 2 * col[HOLD]):
-                g = 0.5 * col[GAIN]
+            fit = -1.0
+            if col[ROT] >= 0:
+                k = int(col[NH]) % RING_K
+                col[HIST + 2 * k], col[HIST + 2 * k + 1] = est[c, j, 0]
+                col[NH] += 1
+                if col[NH] >= RING_K:
+                    fit = _ring_fit(col)
+            fit_before, col[FITY] = col[FITY], max(fit, 0.0)
+            if fit > 0:  # a ring: the stretches wait, the fit's end is corrected on once it holds
+                col[RINGED] = 1.0
+                col[REF] = col[ALL] = col[NALL] = col[SUM] = col[SQ] = col[RUN] = 0.0
+                col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = 0.0
+                if not (fit_before > 0 and abs(fit / fit_before - 1) <= STILL):
+                    continue
+                mean, g = fit, col[GAIN]
             else:
-                continue
+                col[SUM] += y
+                col[SQ] += y * y
+                col[SUMR] += est[c, j, 0, 0]
+                col[SUMI] += est[c, j, 0, 1]
+                col[RUN] += 1
+                col[ALL] += y
+                col[NALL] += 1
+                if col[RUN] < col[HOLD]:
+                    continue
+                mean, prev, prev_var = col[SUM] / col[RUN], col[REF], col[REFV]
+                var = max(col[SQ] / col[RUN] - mean * mean, 0.0) / col[RUN]
+                phasor = complex(col[SUMR], col[SUMI]) / col[RUN]
+                p1, p2 = complex(col[P1R], col[P1I]), complex(col[P2R], col[P2I])
+                end, moving = -1.0, False
+                if col[SLOW] and not col[RINGED]:
+                    end = _ring_end(p1, p2, phasor, col[P1V], prev_var, var) if col[NSTR] >= 2 else -1.0
+                    moving = (col[NSTR] >= 1
+                              and abs(phasor - p2) > max(STILL * mean, NOISE_Z * math.sqrt(var + prev_var)))
+                young, end_before = col[NSTR] < 2, col[SPREV]
+                col[SPREV] = max(end, 0.0)
+                col[P1R], col[P1I], col[P1V], col[P2R], col[P2I] = p2.real, p2.imag, prev_var, phasor.real, phasor.imag
+                col[NSTR] += 1
+                col[SUMR] = col[SUMI] = 0.0
+                if prev > 0 and abs(mean / prev - 1) > CHANGED:
+                    _pace_anew(col)
+                col[REF], col[REFV], col[SUM], col[SQ], col[RUN] = mean, var, 0.0, 0.0, 0.0
+                agree = prev > 0 and abs(mean / prev - 1) <= AGREE
+                far_agree = (col[SCATTER] != 0 and abs(r / mean - 1) > FAR
+                             and abs(mean - prev) <= NOISE_Z * math.sqrt(var + prev_var))
+                if agree and moving and end < 0 and young:
+                    continue
+                if agree and moving and end > 0:
+                    mean, g = end, col[GAIN]
+                elif end > 0 and end_before > 0 and abs(end / end_before - 1) <= AGREE:
+                    mean, g = end, col[GAIN]
+                elif agree or (prev > 0 and far_agree):
+                    if abs(r / mean - 1) <= AGREE and not moving:
+                        mean = col[ALL] / col[NALL]
+                    g = col[GAIN]
+                elif col[TRIES] >= PATIENCE * (col[WARM] + 2 * col[HOLD]):
+                    g = 0.5 * col[GAIN]
+                else:
+                    continue
             step = (r / mean) ** g
             if abs(step - 1) <= DEADBAND:
                 col[TRIES] = 0.0
@@ -321,6 +379,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             a *= step
             _watch_anew(col)
             col[WAIT], col[BEFORE] = col[WARM], mean * (max(1.0, step) + abs(step - 1))
+            if fit > 0:
+                col[BEFORE] += col[FSWING]
             if not 1 / BIG_STEP <= step <= BIG_STEP and col[RISE] > 1:
                 col[A0], col[RISEK], rising = col[OUT], 0.0, True
                 col[WAIT] += col[RISE] - 1

@@ -56,7 +56,7 @@ class PerChannelRig(Rig):
                                       -(-(obs.window + int(obs.prefilter_memory.max())) // self.block), self.block,
                                       ring, rise,
                                       (beat * self.block / self.fs, tau * self.fs / self.block), np.maximum(top, tip),
-                                      release)
+                                      release, f * self.block / self.fs, [self.control_noise[int(b)] for b in bank])
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)

@@ -1,5 +1,6 @@
 """The amplitude controller's block kernel (see :class:`rtctl.control.AmplitudeController`)."""
 
+import cmath
 import math
 
 from .._numba import kernel
@@ -71,8 +72,14 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
           # plant, the level corrected on times the step where it rose, and the step's size again
           # for the ring it may leave (0: not watched meanwhile), m
  RELNOW,  # 1: released in this block (its channel's other tones are released with it)
- ) = range(59)
-N_STATE = 59
+ ROT,     # the tone's own turn per block, rad (< 0: no ring fit for this tone)
+ NH,      # fresh estimates of the present command pushed into the ring history
+ FITY,    # the steady amplitude the ring fit found in the block before, m (0: none)
+ FSWING,  # the largest distance of the fitted estimates from that steady phasor, m
+ RINGED,  # 1: a ring fit stood for the present command (its stretches extrapolate no ring)
+ NOISE,   # the rms noise of the tone's estimate, m (the sense chain's, 0: none known)
+ HIST,    # RING_K phasors (real, imaginary part), the latest fresh estimates, a circular buffer
+ ) = range(66)
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -209,6 +216,44 @@ RELEASE_RUN = 2
 #: 2 % above up to 1.05 of the target (10 Hz lift-offs +16 / +12 % over the target, worst / median
 #: over the control sweep's devices; +12 / +6 % now)
 ANCHOR_RATE = 4.0
+#: the ring fit: the last RING_K fresh phasor estimates of one command, as a steady phasor and one
+#: real mode's decaying ring. A mode at ``f_m`` rings in the tone's phasor at ``f_m - f`` and,
+#: through the real signal's other half, at ``-(f_m + f)``: two roots per block of one size whose
+#: angles add up to ``-2`` times the tone's own turn per block (``ROT``). Turned back by that turn
+#: (``x[n] = d[n] exp(j ROT n)``, ``d`` the first differences, which leave the steady phasor out),
+#: such a ring obeys ``x[n+2] = al x[n+1] + be x[n]`` with ``al`` and ``be`` real, fitted by least
+#: squares over the real and imaginary parts; the steady phasor is what that recursion leaves
+#: fixed, ``c0 / (1 - c1 - c2)`` (``c1 = al exp(-j ROT)``, ``c2 = be exp(-2j ROT)``, ``c0`` the
+#: mean of ``w[n+2] - c1 w[n+1] - c2 w[n]``): exact for one real mode, whatever its frequency,
+#: decay and the window's share of its other half. Beside a loaded mode 95 Hz from a 500 Hz tone
+#: (half the damping, a soft finger) the estimates swing by +-30 % for 40 ms after a finger
+#: presses, stretch means of half a beat alternate around the steady level, and the loop had
+#: corrected only after 57 ms, or on two stretches that agreed on a point of the ring (-20 %,
+#: wrong); the fit holds the steady level within 0.3 % from 9 ms after the press. Over 8
+#: estimates instead of 10 it took a finger's slow relaxation for the steady level (500 Hz
+#: presses on the control sweep's devices with damping x2 and a soft finger settled in 92-112 ms
+#: against 40-42). Figures: docs/control.md, "A ring fitted".
+RING_K = 10
+N_STATE = HIST + 2 * RING_K
+#: estimates that all lie within half of STILL of the latest, or within this many times the
+#: estimate's noise (``NOISE``), are not fitted: most blocks, where the fit would find no ring
+#: (a ring passes RING_RES only where its steps are some 20 times the noise's), and skipping them
+#: keeps the fit's cost (0.16 us a tone) off steady tones
+RING_NOISE = 10.0
+#: the fit stands only where its prediction's residual is at most this share of the differences
+#: (a window sliding over a change, noise or two modes leave more: 0.1-0.9 against 0.002-0.02 on
+#: one mode's ring)
+RING_RES = 0.05
+#: ... both roots inside RING_RHO (a ring that decays) and at least RING_MOVE from 1 (a window
+#: sliding over a change moves its estimate along a line: a root at 1)
+RING_RHO = 0.995
+RING_MOVE = 0.1
+#: ... and the fitted estimates swing by more than STILL around the steady phasor (less is left
+#: to the stretches: without this bound the control sweep's full grid missed 487 clauses, 477
+#: with it). Two successive blocks' fits within STILL of each other are corrected on; while a
+#: ring is fitted no stretch is (its means are points of the ring), and once one was, the
+#: stretches of that command extrapolate no ring (``SLOW``): what the fit leaves of it is too
+#: small, and three such means had read a ring's end 5 % off
 
 
 @kernel
@@ -229,6 +274,88 @@ def _watch_anew(state, i):
     state[PREVY, i] = 0.0
     state[NWATCH, i] = 0.0
     state[HIGH, i] = 0.0
+    state[NH, i] = 0.0
+    state[FITY, i] = 0.0
+    state[RINGED, i] = 0.0
+
+
+@kernel
+def _hist(state, i, n):
+    """The ``n``-th oldest phasor of tone ``i``'s ring history."""
+    k = (int(state[NH, i]) + n) % RING_K
+    return complex(state[HIST + 2 * k, i], state[HIST + 2 * k + 1, i])
+
+
+@kernel
+def _ring_fit(state, i):
+    """The steady amplitude of tone ``i``'s last RING_K fresh estimates, fitted as a steady
+    phasor and one real mode's decaying ring (``RING_K``), or -1 where they are not that; keeps
+    the fitted ring's largest distance from the steady phasor in ``FSWING``. One pass over the
+    history gathers every sum the fit needs (it runs in every fresh block of a tone that has
+    the fit)."""
+    k = int(state[NH, i]) % RING_K
+    j = k - 1 if k > 0 else RING_K - 1  # the latest
+    lr, li = state[HIST + 2 * j, i], state[HIST + 2 * j + 1, i]
+    gate = max(0.5 * STILL * math.hypot(lr, li), RING_NOISE * state[NOISE, i]) ** 2
+    for n in range(RING_K):  # squared distances first: most blocks end here
+        dr = state[HIST + 2 * n, i] - lr
+        di = state[HIST + 2 * n + 1, i] - li
+        if dr * dr + di * di > gate:
+            break
+    else:
+        return -1.0  # (a steady estimate, or noise: as most blocks, no ring the fit would find)
+    last = complex(lr, li)
+    turn = cmath.exp(1j * state[ROT, i])
+    g11 = g22 = g12 = b1 = b2 = cc = dd = 0.0
+    total = 0j
+    w0 = w1 = x0 = x1 = 0j
+    z = 1.0 + 0j
+    for n in range(RING_K):
+        w = complex(state[HIST + 2 * k, i], state[HIST + 2 * k + 1, i])
+        k = k + 1 if k + 1 < RING_K else 0
+        total += w
+        if n == 0:
+            w0 = w
+        else:
+            x = (w - w1) * z  # x[n-1]: the difference turned back by the tone's own turn n-1 times
+            z *= turn
+            dd += x.real * x.real + x.imag * x.imag
+            if n >= 3:  # x = al x1 + be x0, al and be real
+                g11 += x1.real * x1.real + x1.imag * x1.imag
+                g22 += x0.real * x0.real + x0.imag * x0.imag
+                g12 += x1.real * x0.real + x1.imag * x0.imag
+                b1 += x1.real * x.real + x1.imag * x.imag
+                b2 += x0.real * x.real + x0.imag * x.imag
+                cc += x.real * x.real + x.imag * x.imag
+            x0, x1 = x1, x
+        w1 = w
+    det = g11 * g22 - g12 * g12
+    if not det > 1e-9 * g11 * g22:
+        return -1.0
+    al = (b1 * g22 - g12 * b2) / det
+    be = (g11 * b2 - g12 * b1) / det
+    # the least-squares residual, from the same sums: what the fit leaves of the right-hand side
+    if not cc - al * b1 - be * b2 <= RING_RES * RING_RES * dd:
+        return -1.0
+    disc = cmath.sqrt(al * al + 4.0 * be + 0j)
+    p1 = 0.5 * (al + disc) / turn
+    p2 = 0.5 * (al - disc) / turn
+    if not (max(abs(p1), abs(p2)) <= RING_RHO and min(abs(1.0 - p1), abs(1.0 - p2)) >= RING_MOVE):
+        return -1.0
+    c1 = al / turn
+    c2 = be / (turn * turn)
+    # the mean of w[n+2] - c1 w[n+1] - c2 w[n], n = 0 ... RING_K - 3, from the sum of every w
+    first, second, before = w0, _hist(state, i, 1), _hist(state, i, RING_K - 2)
+    c0 = (total - first - second) - c1 * (total - first - last) - c2 * (total - before - last)
+    a = c0 / ((RING_K - 2) * (1.0 - c1 - c2))
+    y = abs(a)
+    swing = 0.0
+    for n in range(RING_K):
+        swing = max(swing, abs(_hist(state, i, n) - a))
+    state[FSWING, i] = swing
+    if not (swing > STILL * y and y < math.inf):
+        return -1.0
+    return y
 
 
 @kernel
@@ -513,72 +640,104 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 state[PREVY, i] = 0.0
                 state[NWATCH, i] = 0.0
                 state[HIGH, i] = 0.0
+                state[NH, i] = 0.0  # (the ring fit needs estimates of consecutive blocks)
+                state[FITY, i] = 0.0
                 status |= CONTROL_FROZEN
                 continue
             state[FROZEN, i] = 0.0
             state[GHAT, i] = y / a
             state[TRIES, i] += 1.0
-            # steady: the means of two successive stretches of HOLD fresh estimates agree (a
-            # ripple averages out within a stretch, a drift or a window sliding over a change
-            # shows between them)
-            state[SUM, i] += y
-            state[SQ, i] += y * y
-            state[SUMR, i] += est[c, j, 0, 0]
-            state[SUMI, i] += est[c, j, 0, 1]
-            state[RUN, i] += 1.0
-            state[ALL, i] += y
-            state[NALL, i] += 1.0
-            if state[RUN, i] < state[HOLD, i]:
-                continue
-            n_run = state[RUN, i]
-            m = state[SUM, i] / n_run
-            v = max(state[SQ, i] / n_run - m * m, 0.0) / n_run  # the mean's variance, as if independent
-            prev, pv = state[REF, i], state[REFV, i]
-            ar = state[SUMR, i] / n_run
-            ai = state[SUMI, i] / n_run
-            ext = -1.0
-            moving = False
-            if state[SLOW, i] != 0.0:  # (elsewhere a ring turns or decays within a stretch)
-                ext = _extrapolate(state, i, ar, ai, v, pv)
-                moving = state[NSTR, i] >= 1.0 and (math.hypot(ar - state[P2R, i], ai - state[P2I, i])
-                                                    > max(STILL * m, NOISE_Z * math.sqrt(v + pv)))
-            young = state[NSTR, i] < 2.0
-            sprev = state[SPREV, i]
-            state[SPREV, i] = max(ext, 0.0)
-            state[P1R, i], state[P1I, i], state[P1V, i] = state[P2R, i], state[P2I, i], pv
-            state[P2R, i], state[P2I, i] = ar, ai
-            state[NSTR, i] += 1.0
-            state[SUMR, i] = 0.0
-            state[SUMI, i] = 0.0
-            if prev > 0.0 and abs(m / prev - 1.0) > CHANGED:
-                _pace_anew(state, i)
-            state[REF, i] = m
-            state[REFV, i] = v
-            state[SUM, i] = 0.0
-            state[SQ, i] = 0.0
-            state[RUN, i] = 0.0
-            if prev > 0.0 and abs(m / prev - 1.0) <= AGREE and moving and ext < 0.0 and young:
-                continue  # amplitudes agree on a point of a slow ring: a third stretch tells its end
-            if prev > 0.0 and abs(m / prev - 1.0) <= AGREE and moving and ext > 0.0:
-                y = ext
+            fit = -1.0
+            if state[ROT, i] >= 0.0:
+                k = int(state[NH, i]) % RING_K
+                state[HIST + 2 * k, i] = est[c, j, 0, 0]
+                state[HIST + 2 * k + 1, i] = est[c, j, 0, 1]
+                state[NH, i] += 1.0
+                if state[NH, i] >= RING_K:
+                    fit = _ring_fit(state, i)
+            before = state[FITY, i]
+            state[FITY, i] = max(fit, 0.0)
+            if fit > 0.0:
+                # a ring: its stretch means are points of it, and the fit is its end
+                state[RINGED, i] = 1.0
+                state[REF, i] = 0.0
+                state[ALL, i] = 0.0
+                state[NALL, i] = 0.0
+                state[SUM, i] = 0.0
+                state[SQ, i] = 0.0
+                state[RUN, i] = 0.0
+                state[SUMR, i] = 0.0
+                state[SUMI, i] = 0.0
+                state[NSTR, i] = 0.0
+                state[SPREV, i] = 0.0
+                if not (before > 0.0 and abs(fit / before - 1.0) <= STILL):
+                    continue
+                y = fit
                 g = state[GAIN, i]
-            elif ext > 0.0 and sprev > 0.0 and abs(ext / sprev - 1.0) <= AGREE:
-                y = ext  # two successive stretches extrapolate the ring to one end
-                g = state[GAIN, i]
-            elif prev > 0.0 and (abs(m / prev - 1.0) <= AGREE
-                                 or (state[SCATTER, i] != 0.0 and abs(r / m - 1.0) > FAR
-                                     and abs(m - prev) <= NOISE_Z * math.sqrt(v + pv))):
-                y = m
-                if abs(r / m - 1.0) <= AGREE and not moving:
-                    # near the target the steady plant is best seen in the mean of every fresh
-                    # estimate of this command (the last correction's fine tuning)
-                    y = state[ALL, i] / state[NALL, i]
-                g = state[GAIN, i]
-            elif state[TRIES, i] >= PATIENCE * (state[WARM, i] + 2.0 * state[HOLD, i]):
-                y = m
-                g = 0.5 * state[GAIN, i]  # never steady: follow the drift at half strength
-            else:
-                continue
+            if fit < 0.0:  # no ring fitted: stretches
+                # steady: the means of two successive stretches of HOLD fresh estimates agree (a
+                # ripple averages out within a stretch, a drift or a window sliding over a change
+                # shows between them)
+                state[SUM, i] += y
+                state[SQ, i] += y * y
+                state[SUMR, i] += est[c, j, 0, 0]
+                state[SUMI, i] += est[c, j, 0, 1]
+                state[RUN, i] += 1.0
+                state[ALL, i] += y
+                state[NALL, i] += 1.0
+                if state[RUN, i] < state[HOLD, i]:
+                    continue
+                n_run = state[RUN, i]
+                m = state[SUM, i] / n_run
+                v = max(state[SQ, i] / n_run - m * m, 0.0) / n_run  # the mean's variance, as if independent
+                prev, pv = state[REF, i], state[REFV, i]
+                ar = state[SUMR, i] / n_run
+                ai = state[SUMI, i] / n_run
+                ext = -1.0
+                moving = False
+                if state[SLOW, i] != 0.0 and state[RINGED, i] == 0.0:
+                    # (elsewhere a ring turns or decays within a stretch; and once a ring fit
+                    # stood, what it leaves of the ring is too small to extrapolate)
+                    ext = _extrapolate(state, i, ar, ai, v, pv)
+                    moving = state[NSTR, i] >= 1.0 and (math.hypot(ar - state[P2R, i], ai - state[P2I, i])
+                                                        > max(STILL * m, NOISE_Z * math.sqrt(v + pv)))
+                young = state[NSTR, i] < 2.0
+                sprev = state[SPREV, i]
+                state[SPREV, i] = max(ext, 0.0)
+                state[P1R, i], state[P1I, i], state[P1V, i] = state[P2R, i], state[P2I, i], pv
+                state[P2R, i], state[P2I, i] = ar, ai
+                state[NSTR, i] += 1.0
+                state[SUMR, i] = 0.0
+                state[SUMI, i] = 0.0
+                if prev > 0.0 and abs(m / prev - 1.0) > CHANGED:
+                    _pace_anew(state, i)
+                state[REF, i] = m
+                state[REFV, i] = v
+                state[SUM, i] = 0.0
+                state[SQ, i] = 0.0
+                state[RUN, i] = 0.0
+                if prev > 0.0 and abs(m / prev - 1.0) <= AGREE and moving and ext < 0.0 and young:
+                    continue  # amplitudes agree on a point of a slow ring: a third stretch tells its end
+                if prev > 0.0 and abs(m / prev - 1.0) <= AGREE and moving and ext > 0.0:
+                    y = ext
+                    g = state[GAIN, i]
+                elif ext > 0.0 and sprev > 0.0 and abs(ext / sprev - 1.0) <= AGREE:
+                    y = ext  # two successive stretches extrapolate the ring to one end
+                    g = state[GAIN, i]
+                elif prev > 0.0 and (abs(m / prev - 1.0) <= AGREE
+                                     or (state[SCATTER, i] != 0.0 and abs(r / m - 1.0) > FAR
+                                         and abs(m - prev) <= NOISE_Z * math.sqrt(v + pv))):
+                    y = m
+                    if abs(r / m - 1.0) <= AGREE and not moving:
+                        # near the target the steady plant is best seen in the mean of every fresh
+                        # estimate of this command (the last correction's fine tuning)
+                        y = state[ALL, i] / state[NALL, i]
+                    g = state[GAIN, i]
+                elif state[TRIES, i] >= PATIENCE * (state[WARM, i] + 2.0 * state[HOLD, i]):
+                    y = m
+                    g = 0.5 * state[GAIN, i]  # never steady: follow the drift at half strength
+                else:
+                    continue
             step = (r / y) ** g
             if abs(step - 1.0) <= DEADBAND:
                 state[TRIES, i] = 0.0  # on target: keep watching (this stretch compares with the next)
@@ -612,6 +771,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             # the tone beats with it: a 10 Hz tone under a stiff finger pressing, stepped x1.7,
             # read 7 % over its new level)
             state[BEFORE, i] = y * (max(1.0, step) + abs(step - 1.0))
+            if fit > 0.0:  # and the ring corrected across goes on meanwhile
+                state[BEFORE, i] += state[FSWING, i]
             if (step > BIG_STEP or step * BIG_STEP < 1.0) and state[RISE, i] > 1.0:
                 state[A0, i] = state[OUT, i]  # from the drive now, not from 0
                 state[RISEK, i] = 0.0

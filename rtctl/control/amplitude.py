@@ -86,9 +86,12 @@ from ._kernels import (
     N_INDEX,
     N_STATE,
     N_TARGET,
+    NOISE,
     OBS_CH,
     OBS_SLOT,
+    RING_K,
     RISE,
+    ROT,
     SCATTER,
     SIBLING,
     SLOW,
@@ -206,6 +209,15 @@ class AmplitudeController:
         rises above the latest on-target one by more than ``RELEASE`` of the target and this drops
         the drive to the target over ``gain_top``), or a negative value: no release rule for
         that tone. Needs ``gain_top``. None: no release rule.
+    turn : array_like, shape (n,), optional
+        Per tone, its own turns per block (frequency times block over the sample rate): where
+        given and the tone's window is at most ``RING_K - 4`` blocks, the last ``RING_K`` fresh
+        estimates of a command are fitted as a steady phasor and one real mode's decaying ring
+        (whose other half turns by ``-(f_m + f)``, and so needs the tone's own turn), and the
+        loop corrects on the ring's end (``RING_K``). None: no ring fit.
+    noise : array_like, shape (n,), optional
+        Per tone, the rms noise of its estimate, m (:meth:`rtctl.selfsense.rt.Observer.noise_floor`):
+        estimates that move by no more than ``RING_NOISE`` times it are not fitted. None: 0.
 
     Attributes
     ----------
@@ -218,7 +230,7 @@ class AmplitudeController:
 
     def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
                  latency: int, window, block: int, ring: int = 0, rise: int = 0, beside=None, gain_top=None,
-                 release=None):
+                 release=None, turn=None, noise=None):
         n = len(bank_index)
         self.n = n
         self.index = np.zeros((N_INDEX, n), dtype=np.int64)
@@ -272,6 +284,18 @@ class AmplitudeController:
             beat, tau = (np.broadcast_to(np.asarray(x, dtype=float), (n,)) for x in beside)
             hold = np.broadcast_to(self.hold, (n,))
             self.slow = ((beat * hold < SLOW_TURNS) & (tau > hold)).astype(float)
+        self.noise = np.zeros(n) if noise is None else np.broadcast_to(np.asarray(noise, dtype=float), (n,)).copy()
+        if np.any(~(self.noise >= 0)) or np.any(~np.isfinite(self.noise)):
+            raise ValueError("noise: each tone's estimate noise, m rms, finite and >= 0")
+        self.rot = np.full(n, -1.0)
+        if turn is not None:
+            t = np.broadcast_to(np.asarray(turn, dtype=float), (n,))
+            if np.any(~np.isfinite(t)) or np.any(t < 0):
+                raise ValueError("turn: each tone's own turns per block, finite and >= 0")
+            # (a window sliding over a change of the plant, read within RING_K estimates, would
+            # pass for a ring where it is not short against them)
+            short = np.broadcast_to(np.asarray(window), (n,)) <= RING_K - 4
+            self.rot = np.where(short, 2.0 * np.pi * (t % 1.0), -1.0)
         self.reset()
 
     @property
@@ -295,6 +319,8 @@ class AmplitudeController:
         self.state[HOLDMAX] = np.maximum(self.hold, -(-self.ring // 2))
         self.state[SCATTER] = self.scatter
         self.state[SLOW] = self.slow
+        self.state[ROT] = self.rot
+        self.state[NOISE] = self.noise
         self.state[RISE] = self.rise
         self.target[TARGET] = self.targets0
         self.target[ENABLE] = 0.0

@@ -279,6 +279,7 @@ class Rig:
             beat, tau = self.models.nearest_modes(g, f)  # in turns per block and blocks
             beside = (beat * self.block / self.fs, tau * self.fs / self.block)
             self._noise_floor(g, obs, c_, slot, bank, chan, f, target)
+            noise = np.array([self.control_noise[int(b)] for b in bank])  # each estimate's, m rms
             # the release rule where the most responsive load is the lifted beam (the drop then
             # puts the target on the lifted tip) and the window is long (a lift-off swings there
             # for a window; where it is short the loop's own correction comes soon, and a drop in
@@ -286,9 +287,10 @@ class Rig:
             lifted = np.array([x is None for x in loads])
             free = gains[lifted].max(axis=0) if lifted.any() else np.zeros_like(top)
             release = np.where((free >= top * (1.0 - 1e-9)) & (obs.windows[c_] >= RELEASE_WINDOW * self.fs),
-                               RELEASE_Z * np.array([self.control_noise[int(b)] for b in bank]), -1.0)
+                               RELEASE_Z * noise, -1.0)
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
-                                      ring, rise, beside, np.maximum(top, tip), release)
+                                      ring, rise, beside, np.maximum(top, tip), release, f * self.block / self.fs,
+                                      noise)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
