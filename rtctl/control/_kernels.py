@@ -308,14 +308,18 @@ def _ring_fit(state, i):
     turn = cmath.exp(1j * state[ROT, i])
     g11 = g22 = g12 = b1 = b2 = cc = dd = 0.0
     total = 0j
-    w0 = w1 = x0 = x1 = 0j
+    first = second = before = w1 = x0 = x1 = 0j
     z = 1.0 + 0j
     for n in range(RING_K):
         w = complex(state[HIST + 2 * k, i], state[HIST + 2 * k + 1, i])
         k = k + 1 if k + 1 < RING_K else 0
         total += w
+        if n == 1:
+            second = w
+        elif n == RING_K - 2:
+            before = w
         if n == 0:
-            w0 = w
+            first = w
         else:
             x = (w - w1) * z  # x[n-1]: the difference turned back by the tone's own turn n-1 times
             z *= turn
@@ -345,7 +349,6 @@ def _ring_fit(state, i):
     c1 = al / turn
     c2 = be / (turn * turn)
     # the mean of w[n+2] - c1 w[n+1] - c2 w[n], n = 0 ... RING_K - 3, from the sum of every w
-    first, second, before = w0, _hist(state, i, 1), _hist(state, i, RING_K - 2)
     c0 = (total - first - second) - c1 * (total - first - last) - c2 * (total - before - last)
     a = c0 / ((RING_K - 2) * (1.0 - c1 - c2))
     y = abs(a)
