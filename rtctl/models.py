@@ -443,18 +443,20 @@ class Models:
                          "actuator, which this version cannot model yet")
 
     def observer(self, group, freqs, fs: float, block: int, wave=None, window=None, hop=None,
-                 lstsq=False, prefilter=None):
+                 lstsq=False, prefilter=None, rows=None):
         """The self-sensing observer of a bimorph group on ``freqs`` (Hz, ``(n_channels, width)``,
         0 for an unused slot): the transfer-matrix beam under the finger, the front end of the
         group's amplifier and sense chain; the rebuilt tip wave goes into ``wave``; ``window``,
-        ``hop``, ``lstsq`` and ``prefilter`` as for :class:`~rtctl.selfsense.rt.Observer` (one window for all
-        channels or one per channel; default :func:`~rtctl.selfsense.rt.block_window`). An
+        ``hop``, ``lstsq``, ``prefilter`` and ``rows`` (default all) as for
+        :class:`~rtctl.selfsense.rt.Observer` (one window for all channels or one per channel;
+        default :func:`~rtctl.selfsense.rt.block_window`). An
         ill-conditioned tone is refused (ModelError)."""
         from .selfsense.rt import Observer
 
         return Observer(self.observer_beam(group), freqs, fs, block, self.frontend(group, fs),
                         window=window, image_load=self.finger(group), max_cond=OBSERVER_MAX_COND, wave=wave,
-                        hop=hop, lstsq=lstsq, image_loads=self.other_fingers(group), prefilter=prefilter)
+                        hop=hop, lstsq=lstsq, image_loads=self.other_fingers(group), prefilter=prefilter,
+                        **({} if rows is None else {"rows": rows}))
 
     def observer_beam(self, group):
         """The transfer-matrix twin of ``group``'s beam the observer is designed on."""

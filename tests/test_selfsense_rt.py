@@ -56,6 +56,38 @@ def test_kernel_matches_naive_twin():
     np.testing.assert_allclose(obs.wave, wave, rtol=1e-9, atol=1e-9 * np.abs(wave).max())
 
 
+@pytest.mark.parametrize("rows", [1, 3])
+def test_leading_rows_only(rows):
+    """``rows``: the block step computes the leading estimate rows alone, each as the naive twin
+    does (the rest of ``H`` is there, and ignored); a row not kept is refused by name."""
+    from rtctl.errors import ModelError
+    from rtctl.selfsense.observer import EST_NAMES
+
+    rng = np.random.default_rng(7)
+    freqs = np.array([[245.0, 255.0], [1000.0, 0.0]])
+    obs = Observer(TMMBeam.from_fe(fe_model()), freqs, FS, BLOCK, rows=rows)
+    assert obs.est.shape == (2, 2, rows, 2) and obs.H.shape[2] == len(EST_NAMES)
+    H = rng.standard_normal(obs.H.shape)
+    H[1, 1] = 0.0
+    obs.H[:] = H
+    W = obs.window
+    n = np.arange(W)
+    drive = np.stack([np.cos(2 * np.pi * f[0] * n / FS + 0.3) + rng.standard_normal(W) for f in freqs])
+    sensed = rng.standard_normal((2 * obs.n_seg, W)) * 1e-6
+    _, got, _ = _feed(obs, H, drive, sensed)
+    want = observer_block(H[..., 0] + 1j * H[..., 1], drive, sensed, freqs, FS, obs.n_seg, K=steps_K(obs))
+    np.testing.assert_allclose(got, want[:, :, :rows], rtol=1e-9, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_allclose(obs.wave, rebuild(want[:, :, 0], freqs, FS, W - BLOCK, BLOCK), rtol=1e-9,
+                               atol=1e-9 * np.abs(want[:, :, 0]).max())
+    assert np.array_equal(obs.phasors(EST_NAMES[rows - 1]), got[:, :, rows - 1])
+    with pytest.raises(ModelError, match=rf"computes only tip_m.*rows={rows}\); build it with rows > {rows} "
+                                         rf"to read {EST_NAMES[rows]}"):
+        obs.phasors(EST_NAMES[rows])
+    for bad in (0, len(EST_NAMES) + 1, 1.0, True):
+        with pytest.raises(ModelError, match="rows must be an integer in 1 ... 9"):
+            Observer(TMMBeam.from_fe(fe_model()), freqs, FS, BLOCK, rows=bad)
+
+
 def test_window_per_channel_matches_naive_twin_per_channel():
     """Each channel over whole periods of its own tones only: its estimates and rebuilt wave are
     those of direct sums over its own last window (not the longest one's), through ring wraps."""

@@ -225,7 +225,8 @@ class Rig:
                 obs = self.models.observer(g, freqs, self.fs, self.block, wave=self.estimated[ch0:c1],
                                            window=window, hop=hop, lstsq=lstsq,
                                            prefilter=(prefilter_cutoffs(freqs, self.fs, self.models.lowest_mode(g))
-                                                      if self.closed else None))
+                                                      if self.closed else None),
+                                           rows=1)  # the tip: all the controller and the waveform read
                 rows = self.sensed_rows[g.name]
                 if rows.stop - rows.start != n * n_seg:
                     raise SceneError(f"{scene.source}: actuator.{g.name}: the device senses {rows.stop - rows.start} "

@@ -92,7 +92,8 @@ def observer_process(u_ref, u_pend, u_chan, u_acc, u_ring, u_solve, i_ref, i_pen
     scale : ndarray, shape (n_ch,)
         ``2 / window`` of each channel: lock-in sum to phasor.
     est : ndarray, shape (n_ch, n_tones, n_est, 2)
-        Written: estimate phasors (real, imaginary) over the last complete window.
+        Written: estimate phasors (real, imaginary) over the last complete window, of the first
+        ``n_est`` rows of ``H`` (a caller that reads the tip alone passes one row).
     wave : ndarray, shape (n_ch, n)
         Written: tip deflection rebuilt from the row-0 estimates on this block's samples, m.
     pf, pf_z, pf_x : ndarray, shapes (n_ch * (1 + n_seg), 5), (..., 2), (..., n)

@@ -320,6 +320,10 @@ class Observer:
         Take a drive step's boundary term out of the windows that hold one (default): without
         it, such a window reads the tip several times too large (``_steps_design``; it costs the
         stage 2-7 %, bench/observer.py).
+    rows : int
+        How many of the leading ``EST_NAMES`` rows the block step computes (default all; 1: the
+        tip alone, all a rig's controller and waveform read, which saves the stage about 5 % at
+        48 channels). :meth:`phasors` of a row not kept is refused.
     max_cond : float
         Refuse ill-conditioned frequencies (also for four segments, whose tip estimate is less
         fragile than the support stiffness that :func:`~rtctl.selfsense.observer.design` guards
@@ -361,8 +365,8 @@ class Observer:
         :data:`LOAD_LAG_S`, whichever is longer.
     cond : ndarray, shape (n_channels, n_tones)
         Condition number per slot (NaN unused).
-    est : ndarray, shape (n_channels, n_tones, N_EST, 2)
-        Latest estimates (real, imaginary), rows ``EST_NAMES``.
+    est : ndarray, shape (n_channels, n_tones, rows, 2)
+        Latest estimates (real, imaginary), the first ``rows`` of ``EST_NAMES``.
     u_out : ndarray, shape (n_channels, n_tones, 2)
         The drive's amplitude (peak, V) and phase (rad) per tone slot over the same window (NaN
         for an unused slot); its phasor's window sum is ``lock_u.acc[S_R:S_I + 1, c * n_tones + k]``
@@ -383,7 +387,11 @@ class Observer:
     """
 
     def __init__(self, beam, freqs, fs, block, frontend=None, window=None, image_load=None,
-                 max_cond=MAX_COND, wave=None, hop=None, lstsq=False, image_loads=(), prefilter=None, steps=True):
+                 max_cond=MAX_COND, wave=None, hop=None, lstsq=False, image_loads=(), prefilter=None, steps=True,
+                 rows=N_EST):
+        if isinstance(rows, bool) or not isinstance(rows, (int, np.integer)) or not 1 <= rows <= N_EST:
+            raise ModelError(f"rows must be an integer in 1 ... {N_EST} (the leading rows of {EST_NAMES}); "
+                             f"got {rows!r}")
         f = np.atleast_2d(np.asarray(freqs, dtype=float))
         f = np.where(np.isfinite(f), f, 0.0)
         if np.any(f < 0) or np.any(f >= fs / 2):
@@ -466,7 +474,8 @@ class Observer:
                                  hop=self.hop, lstsq=np.repeat(self.lstsq, n_seg))
         except ValueError as e:
             raise ModelError(f"observer lock-in: {e}") from None
-        self.est = np.zeros((n_ch, n_t, N_EST, 2))
+        # the kernel computes the rows ``est`` has, and only those
+        self.est = np.zeros((n_ch, n_t, int(rows), 2))
         if wave is None:
             wave = np.zeros((n_ch, self.block))
         elif wave.shape != (n_ch, self.block) or wave.dtype != np.float64 or not wave.flags.c_contiguous:
@@ -624,7 +633,11 @@ class Observer:
 
     def phasors(self, name="tip_m") -> np.ndarray:
         """Latest estimate of one ``EST_NAMES`` row, shape (n_channels, n_tones), complex."""
-        e = self.est[:, :, EST_NAMES.index(name)]
+        row = EST_NAMES.index(name)
+        if row >= self.est.shape[2]:
+            raise ModelError(f"this observer computes only {', '.join(EST_NAMES[:self.est.shape[2]])} "
+                             f"(rows={self.est.shape[2]}); build it with rows > {row} to read {name}")
+        e = self.est[:, :, row]
         return e[..., 0] + 1j * e[..., 1]
 
     @property
