@@ -39,6 +39,7 @@ from rtctl.control._kernels import (
     HOLDMAX,
     JNOISE,
     LASTDIR,
+    LATB,
     LIMSEEN,
     LIVE_DRIVE,
     LOW,
@@ -48,6 +49,7 @@ from rtctl.control._kernels import (
     NH,
     NOISE,
     NOISE_Z,
+    NPULSE,
     NREL,
     NSTR,
     NWATCH,
@@ -62,6 +64,14 @@ from rtctl.control._kernels import (
     P2R,
     PATIENCE,
     PREVY,
+    PULSE,
+    PULSE_DEPTH,
+    PULSE_LONG,
+    PULSE_MIN,
+    PULSE_NEAR,
+    PULSE_RES,
+    PULSE_TURN,
+    PULSES,
     REF,
     REFV,
     RELEASE,
@@ -81,9 +91,16 @@ from rtctl.control._kernels import (
     RIPPLE_K,
     RISE,
     RISEK,
+    RMI,
+    RMR,
     ROT,
+    RPI,
+    RPR,
     RREF,
     RRUN,
+    RSAME,
+    RSI,
+    RSR,
     RSUM,
     RUN,
     SAT,
@@ -101,9 +118,12 @@ from rtctl.control._kernels import (
     TPREV,
     TRIES,
     TURN,
+    TURNS,
     W_MAX,
     WAIT,
+    WAMP,
     WARM,
+    WINS,
 )
 from rtctl.dsp._kernels import P_AMP, P_FLAG, P_RAMP
 from rtctl.safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
@@ -116,7 +136,7 @@ def _pace_anew(col):
 def _watch_anew(col):
     col[REF] = col[SUM] = col[SQ] = col[RUN] = col[TRIES] = col[ALL] = col[NALL] = 0.0
     col[SUMR] = col[SUMI] = col[NSTR] = col[SPREV] = col[ANCHOR] = col[PREVY] = col[NWATCH] = col[HIGH] = 0.0
-    col[NH] = col[FITY] = col[RINGED] = 0.0
+    col[NH] = col[FITY] = col[RINGED] = col[NPULSE] = 0.0
 
 
 def _let_go(col, y, r, a, waiting=False):
@@ -168,7 +188,7 @@ def _others_let_go(state, index, target, pending, ramp, stepped):
             col[RISEK], col[SAT], col[CMD] = col[RISE], 0.0, a
             if abs(a - col[OUT]) > AGREE * col[OUT]:
                 stepped[k] = abs(a - col[OUT]) / col[OUT] if col[OUT] > 0 else 1.0
-            col[OUT] = a
+            col[OUT], col[PULSE] = a, 0.0
             b = index[BANK, k]
             pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = a, ramp, 1.0
 
@@ -221,7 +241,49 @@ def _ring_fit(col):
     c1, c2 = coef[0] * np.exp(-1j * col[ROT]), coef[1] * np.exp(-2j * col[ROT])
     steady = np.mean(w[2:] - c1 * w[1:-1] - c2 * w[:-2]) / (1.0 - c1 - c2)
     col[FSWING] = np.abs(w - steady).max()
-    return abs(steady) if col[FSWING] > STILL * abs(steady) and abs(steady) < math.inf else -1.0
+    if not (col[FSWING] > STILL * abs(steady) and abs(steady) < math.inf):
+        return -1.0
+    # the ring's two halves at the last two estimates: the one turning least (the mode's own) now
+    main, other = sorted(roots, key=lambda p: abs(cmath.phase(p)))
+    if main != other:
+        now = np.linalg.solve(np.array([[1.0, 1.0], [1.0 / main, 1.0 / other]]), w[-1:-3:-1] - steady)[0]
+    else:
+        now = 0j
+    # the same ring as the block before's fit, carried one block on?
+    was = complex(col[RMR], col[RMI]) * complex(col[RPR], col[RPI])
+    col[RSAME] = float(col[FITY] > 0 and abs(now - was) <= PULSE_RES * abs(now))
+    col[RMR], col[RMI], col[RPR], col[RPI], col[RSR], col[RSI] = now.real, now.imag, main.real, main.imag, \
+        steady.real, steady.imag
+    return abs(steady)
+
+
+def _pulse(col, block):
+    """The pulse that cancels the fitted ring: the ring now (through the window's own sum of its
+    turning, carried on to the step's block), and of every pulse length within a quarter and
+    three quarters of its period, the one whose real step leaves least of it. Returns (d, h), h = 0:
+    none."""
+    p, steady = complex(col[RPR], col[RPI]), complex(col[RSR], col[RSI])
+    phi = cmath.phase(p)
+    if not (0 < abs(phi) <= min(PULSE_TURN, 2 * math.pi * PULSE_NEAR * col[TURNS]) and abs(steady) > 0):
+        return 0.0, 0
+    seen = np.mean(np.exp(-1j * phi / block * np.arange(int(col[WINS]))))  # the window, sample by sample
+    if not abs(seen) >= 0.5:
+        return 0.0, 0
+    lead = col[LATB] - 0.5
+    x = complex(col[RMR], col[RMI]) / seen * abs(p) ** lead * cmath.exp(1j * phi * lead) / steady
+    shown = abs(np.mean(np.exp(-1j * phi / block * np.arange(int(col[WAMP])))))  # in the tone's amplitude
+    if not (abs(x) * shown >= PULSE_MIN and col[RSAME]):
+        return 0.0, 0
+    period = 2 * math.pi / abs(phi)
+    best = None
+    for h in range(max(1, math.ceil(period / 4)), min(PULSE_LONG, math.floor(3 * period / 4)) + 1):
+        q = 1 - p ** -h
+        d = (x * q.conjugate()).real / abs(q) ** 2
+        if abs(d) <= PULSE_DEPTH and (best is None or abs(x - d * q) <= best[0]):
+            best = (abs(x - d * q), d, h)
+    if best is None or best[0] > PULSE_RES * abs(x):
+        return 0.0, 0
+    return best[1], best[2]
 
 
 def amplitude_control(est, drive_est, index, target, state, pending, lim_counts, ramp):
@@ -235,10 +297,11 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             col[LOW] = 0.0
             if col[ON]:
                 stepped[i] = 1.0
-                col[ON] = col[CMD] = col[OUT] = 0.0
+                col[ON] = col[CMD] = col[OUT] = col[PULSE] = 0.0
                 pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = 0.0, ramp, 1.0
             continue
         r = target[TARGET, i]
+        pulse = None  # (step, blocks) of a ring-cancelling pulse made in this block
         lim = float(lim_counts[:, index[CHANNEL, i]].sum())
         limited, col[LIMSEEN] = lim != col[LIMSEEN], lim
         a = col[CMD]
@@ -270,6 +333,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             _pace_anew(col)
         elif col[WAIT] > 0:
             col[WAIT] -= 1
+            back = col[PULSE] > 0 and col[PULSE] == 1  # a pulse's last block: the drive returns
+            col[PULSE] = max(col[PULSE] - 1, 0.0)
             if col[BEFORE] > 0 and _let_go(col, math.hypot(*est[c, j, 0]), r, a, waiting=True):
                 a = _release(col, math.hypot(*est[c, j, 0]), r)
                 if rising:
@@ -277,7 +342,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             else:
                 if col[WAIT] == 0:
                     col[NWATCH] = col[PREVY] = col[HIGH] = 0.0
-                if not rising:
+                if not rising and not back:
                     continue
         elif _let_go(col, math.hypot(*est[c, j, 0]), r, a):
             a = _release(col, math.hypot(*est[c, j, 0]), r)
@@ -357,33 +422,40 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             if abs(step - 1) <= DEADBAND:
                 col[TRIES] = 0.0
                 _pace_anew(col)
-                continue
-            step = min(max(step, 1 / MAX_STEP), MAX_STEP)
-            if limited and step > 1:
-                step = 1.0
-            if (step > 1 and a >= col[AMAX]) or step == 1.0:  # nothing to change: watch on
-                col[TRIES] = 0.0
-                continue
-            up = 1.0 if step > 1 else -1.0
-            if not 1 / REVERSAL < step < REVERSAL:
-                _pace_anew(col)
-                col[LASTDIR] = up
-            elif abs(step - 1) > AGREE:
-                if up == -col[LASTDIR]:
-                    col[REVS] += 1
-                    if col[REVS] >= 2:
-                        col[HOLD] = min(2 * col[HOLD], col[HOLDMAX])
-                else:
-                    col[REVS] = 0.0
-                col[LASTDIR] = up
-            a *= step
-            _watch_anew(col)
-            col[WAIT], col[BEFORE] = col[WARM], mean * (max(1.0, step) + abs(step - 1))
-            if fit > 0:
-                col[BEFORE] += col[FSWING]
-            if not 1 / BIG_STEP <= step <= BIG_STEP and col[RISE] > 1:
-                col[A0], col[RISEK], rising = col[OUT], 0.0, True
-                col[WAIT] += col[RISE] - 1
+                d, h = _pulse(col, ramp) if fit > 0 and col[NPULSE] < PULSES else (0.0, 0)
+                if not (h > 0 and r / col[GTOP] <= a * (1 + d) <= col[AMAX]) or (limited and d > 0):
+                    continue
+                pulses = col[NPULSE] + 1
+                _watch_anew(col)
+                col[NPULSE], col[WAIT], col[BEFORE] = pulses, h + col[WARM], mean * (1 + abs(d)) + col[FSWING]
+                pulse = (d, h)
+            if pulse is None:  # off target: correct
+                step = min(max(step, 1 / MAX_STEP), MAX_STEP)
+                if limited and step > 1:
+                    step = 1.0
+                if (step > 1 and a >= col[AMAX]) or step == 1.0:  # nothing to change: watch on
+                    col[TRIES] = 0.0
+                    continue
+                up = 1.0 if step > 1 else -1.0
+                if not 1 / REVERSAL < step < REVERSAL:
+                    _pace_anew(col)
+                    col[LASTDIR] = up
+                elif abs(step - 1) > AGREE:
+                    if up == -col[LASTDIR]:
+                        col[REVS] += 1
+                        if col[REVS] >= 2:
+                            col[HOLD] = min(2 * col[HOLD], col[HOLDMAX])
+                    else:
+                        col[REVS] = 0.0
+                    col[LASTDIR] = up
+                a *= step
+                _watch_anew(col)
+                col[WAIT], col[BEFORE] = col[WARM], mean * (max(1.0, step) + abs(step - 1))
+                if fit > 0:
+                    col[BEFORE] += col[FSWING]
+                if not 1 / BIG_STEP <= step <= BIG_STEP and col[RISE] > 1:
+                    col[A0], col[RISEK], rising = col[OUT], 0.0, True
+                    col[WAIT] += col[RISE] - 1
         floor = r / col[GTOP]
         col[LOW] = float(a < floor < col[AMAX])
         a = max(a, floor)
@@ -398,9 +470,11 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if rising:
             col[RISEK] += 1
             a = col[A0] + (a - col[A0]) * (1 - math.cos(math.pi * col[RISEK] / col[RISE])) / 2
+        if pulse is not None:
+            a *= 1 + pulse[0]
         if abs(a - col[OUT]) > AGREE * col[OUT]:
             stepped[i] = abs(a - col[OUT]) / col[OUT] if col[OUT] > 0 else 1.0
-        col[OUT] = a
+        col[OUT], col[PULSE] = a, 0.0 if pulse is None else pulse[1]
         pending[P_AMP, b], pending[P_RAMP, b], pending[P_FLAG, b] = a, ramp, 1.0
     _others_let_go(state, index, target, pending, ramp, stepped)
     _others_wait(state, index, stepped)

@@ -10,6 +10,7 @@ import numpy as np
 
 from rtctl.control import AmplitudeController, amplitude_control
 from rtctl.control.amplitude import RELEASE_WINDOW, RELEASE_Z
+from rtctl.engine.report import fit_window
 from rtctl.engine.rig import Rig
 from rtctl.engine.stage import Stage
 
@@ -35,10 +36,11 @@ class PerChannelRig(Rig):
                 for f, b in zip(tone.freqs, bank):
                     slot = int(np.nonzero(obs.freqs[c] == f)[0][0])
                     cols.append((c, slot, b, tone.channel, f, tone.target_m / len(bank),
-                                 g.max_voltage * (1.0 - 1e-9) / per_channel[tone.channel]))
+                                 g.max_voltage * (1.0 - 1e-9) / per_channel[tone.channel],
+                                 fit_window(tone.freqs) * self.fs))
             if not cols:
                 continue
-            c_, slot, bank, chan, f, target, amax = (np.array(x) for x in zip(*cols))
+            c_, slot, bank, chan, f, target, amax, wamp = (np.array(x) for x in zip(*cols))
             amp = np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / amp
             loads = self.models.spread_loads(g)
@@ -56,7 +58,8 @@ class PerChannelRig(Rig):
                                       -(-(obs.window + int(obs.prefilter_memory.max())) // self.block), self.block,
                                       ring, rise,
                                       (beat * self.block / self.fs, tau * self.fs / self.block), np.maximum(top, tip),
-                                      release, f * self.block / self.fs, [self.control_noise[int(b)] for b in bank])
+                                      release, f * self.block / self.fs, [self.control_noise[int(b)] for b in bank],
+                                      np.full(len(bank), obs.window), wamp)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)

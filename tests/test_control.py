@@ -27,6 +27,12 @@ from rtctl.control._kernels import (
     REFV,
     RING_K,
     RINGED,
+    RMI,
+    RMR,
+    RPI,
+    RPR,
+    RSI,
+    RSR,
     RUN,
     SAT,
     SLOW,
@@ -189,10 +195,15 @@ def _twins_agree(sk, sn, state, twin_state, pend_k, pend_n, scale):
     themselves; the ring fit's swing, a distance between phasors, to rounding of the phasors);
     returns the largest squared stretch mean so far."""
     assert sk == sn
-    rows = ~np.isin(np.arange(state.shape[0]), (REFV, P1V, FSWING))
+    ring = (RMR, RMI, RPR, RPI, RSR, RSI)
+    rows = ~np.isin(np.arange(state.shape[0]), (REFV, P1V, FSWING) + ring)
     np.testing.assert_allclose(state[rows], twin_state[rows], rtol=1e-12, atol=0)
     size = np.max(np.abs(twin_state[HIST:HIST + 2 * RING_K]), axis=0)
     assert np.all(np.abs(state[FSWING] - twin_state[FSWING]) <= 1e-12 * size)
+    # the fitted ring's phasors (a half and the steady phasor, from differences of estimates) to
+    # rounding of the estimates as the fit magnifies it; its root (magnitude about 1) likewise
+    for r, scale in ((RMR, size), (RMI, size), (RSR, size), (RSI, size), (RPR, 1.0), (RPI, 1.0)):
+        assert np.all(np.abs(state[r] - twin_state[r]) <= 1e-9 * scale), r
     scale = max(scale, np.max(twin_state[REF]) ** 2)
     np.testing.assert_allclose(state[[REFV, P1V]], twin_state[[REFV, P1V]], rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(pend_k, pend_n, rtol=1e-12, atol=0)

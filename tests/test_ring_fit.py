@@ -6,19 +6,29 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from naive_control import amplitude_control as naive
 
 from rtctl.control import AmplitudeController, amplitude_control
 from rtctl.control._kernels import (
     CMD,
+    DEADBAND,
     ENABLE,
     FSWING,
     HIST,
     N_STATE,
     NH,
     NOISE,
+    P1V,
+    PULSE_MIN,
+    PULSE_NEAR,
+    PULSES,
+    REFV,
     RING_K,
     RING_NOISE,
+    RMR,
     ROT,
+    RPR,
+    RSR,
     _ring_fit,
 )
 from rtctl.dsp._kernels import N_PEND, P_AMP
@@ -144,3 +154,94 @@ def test_a_ring_after_a_plant_change_is_corrected_on_its_end():
     old = loop(None, event=event)
     moved_old = np.flatnonzero(np.diff(old[event - 1:])) + 1
     assert moved_old[0] > moved[0] and (moved_old.size > 1 or abs(old[-1] / need - 1) > 1e-9), moved_old
+
+
+def pulse_loop(theta, rho, blocks=300, event=100, window=3, latency=1, gain=1e-7, target=5e-6, w_samples=None,
+               limit_from=None):
+    """A tone's tip phasor sample by sample on a plant with one mode beside it, turning by ``theta``
+    and decaying by ``rho`` per block: a step of drive leaves a ring of minus the step it makes in
+    the steady phasor (the tip cannot jump), each sample of a ramp its share; at ``event`` the
+    gain drops by 10 % and the tip, continuous, rings by the difference. The observer's estimate
+    is the mean of the tip phasor over ``window`` blocks ``latency`` blocks before; from block
+    ``limit_from`` on the limiter acts on the channel in every block. Returns the
+    controller, the ring at the end of each block, and the drive sent and the command in each block."""
+    B = BLOCK
+    step = (rho * np.exp(1j * theta)) ** (1.0 / B)
+    ctl = AmplitudeController([0], [0], [0], [0], [gain], [150.0], [target], latency, window, B, ring=48,
+                              turn=1 / 3, window_samples=None if w_samples is None else [w_samples])
+    ctl.target[ENABLE] = 1.0
+    twin = [a.copy() for a in (ctl.index, ctl.target, ctl.state)]
+    est, drive_est = np.zeros((1, 1, 9, 2)), np.zeros((1, 1, 2))
+    pending, lim = np.zeros((N_PEND, 1)), np.zeros((3, 1), dtype=np.int64)
+    pend_n = pending.copy()
+    tip = np.zeros(blocks * B, complex)
+    rings, drives, cmds = np.zeros(blocks, complex), np.zeros(blocks), np.zeros(blocks)
+    ring, u, g = 0j, 0.0, gain
+    for k in range(blocks):
+        end = (k + 1 - latency) * B
+        seen = tip[max(0, end - window * B):end] if end > 0 else np.zeros(1)
+        y = seen.mean()
+        est[0, 0, 0] = y.real, y.imag
+        drive_est[0, 0, 0] = u
+        if limit_from is not None and k >= limit_from:
+            lim[1, 0] += 1
+        sk = amplitude_control(est, drive_est, **ctl.args, pending=pending, lim_counts=lim, ramp=float(B))
+        # the naive twin on the same estimates: the same decisions, the same state
+        assert naive(est, drive_est, *twin, pend_n, lim, float(B)) == sk
+        fin = np.where(np.isfinite(ctl.state), np.abs(ctl.state), 0.0)
+        for re in (RMR, RPR, RSR):  # a phasor's parts to rounding of the phasor
+            fin[re] = fin[re + 1] = np.hypot(fin[re], fin[re + 1])
+        fin[[REFV, P1V]] = target ** 2  # variances by subtraction: to rounding of the squares
+        with np.errstate(invalid="ignore"):
+            off = ~((twin[2] == ctl.state) | (np.abs(twin[2] - ctl.state) <= 1e-9 * fin))
+        assert not off.any(), (k, np.flatnonzero(off.any(axis=1)))
+        np.testing.assert_allclose(pend_n, pending, rtol=1e-12, atol=0)
+        if k == event:
+            ring += (g - 0.9 * g) * u
+            g *= 0.9
+        u0, u1 = u, pending[P_AMP, 0]
+        for s in range(B):  # the oscillator's ramp over the block, its last sample at the command
+            un = u0 + (u1 - u0) * (s + 1) / B
+            ring = ring * step - g * (un - u)
+            u = un
+            tip[k * B + s] = g * u + ring
+        rings[k], drives[k], cmds[k] = ring, u, ctl.state[CMD, 0]
+    return ctl, rings, drives, cmds
+
+
+@pytest.mark.parametrize("theta, rho", [(0.285, 0.975), (-0.25, 0.97), (0.2, 0.99), (0.9, 0.95)])
+def test_a_ring_on_target_is_cancelled_by_a_pulse(theta, rho):
+    """After the fit's correction puts the tone on target, the ring left is cancelled by pulses of
+    drive (a step and back, the command unchanged): each leaves at most a third of what the ring's
+    free decay would, and once the ring is under PULSE_MIN no pulse comes. A ring further from
+    the tone than PULSE_NEAR of its frequency (0.9 rad per block at 500 Hz: 215 Hz off) is left to
+    decay."""
+    event, target = 100, 5e-6
+    ctl, rings, drives, cmds = pulse_loop(theta, rho, event=event, target=target)
+    np.testing.assert_allclose(cmds[-1], target / 0.9e-7, rtol=DEADBAND)  # on target
+    pulsed = np.flatnonzero(drives != cmds)
+    pulsed = pulsed[pulsed > event]
+    near = abs(theta) <= 2 * np.pi * PULSE_NEAR / 3
+    assert (pulsed.size > 0) == near, pulsed
+    if not near:
+        return
+    starts = pulsed[np.r_[True, np.diff(pulsed) > 1]]
+    ends = pulsed[np.r_[np.diff(pulsed) > 1, True]] + 1  # the block that ramps back
+    assert len(starts) <= PULSES
+    for k0, k1 in zip(starts, ends):
+        assert np.all(cmds[k0 - 1:k1 + 1] == cmds[k0 - 1])  # the command stays
+        free = np.abs(rings[k0 - 1]) * rho ** (np.arange(k1 + 1, k1 + 21) - (k0 - 1))
+        assert np.all(np.abs(rings[k1 + 1:k1 + 21]) <= free / 3), (k0, k1)
+    assert np.abs(rings[ends[-1] + 1]) <= PULSE_MIN * target
+    assert np.all(drives[ends[-1] + 1:] == cmds[ends[-1] + 1:])  # (later corrections fine-tune)
+
+
+def test_no_pulse_up_while_the_limiter_holds_the_channel():
+    """A pulse that would raise the drive waits while the limiter acts on the channel (as a
+    correction upwards does: no windup); the same ring without the limiter gets it."""
+    ctl, rings, drives, cmds = pulse_loop(-0.25, 0.97)
+    up = np.flatnonzero(drives > cmds)
+    k0 = up[up > 100][0]  # the first pulse upwards after the plant changed
+    assert drives[k0 - 1] == cmds[k0 - 1]
+    ctl, rings, drives, cmds = pulse_loop(-0.25, 0.97, limit_from=k0 - 1)
+    assert np.all(drives[k0 - 1:] <= cmds[k0 - 1:])

@@ -78,8 +78,21 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  FSWING,  # the largest distance of the fitted estimates from that steady phasor, m
  RINGED,  # 1: a ring fit stood for the present command (its stretches extrapolate no ring)
  NOISE,   # the rms noise of the tone's estimate, m (the sense chain's, 0: none known)
+ WINS,    # the tone's observer window, samples
+ LATB,    # blocks from a drive block to the currents answering it (the observer's latency)
+ PULSE,   # blocks left until a ring-cancelling pulse's drive returns to CMD (0: no pulse)
+ NPULSE,  # pulses since the present command's watch began
+ RMR,     # the fitted ring's half nearest the tone at the latest estimate (real, imaginary), m
+ RMI,
+ RPR,     # its root per block (real, imaginary)
+ RPI,
+ RSR,     # the fit's steady phasor (real, imaginary), m
+ RSI,
+ RSAME,   # 1: the ring fitted in this block is the one of the block before, carried on by its root
+ WAMP,    # samples a tone's amplitude is fitted over (``report.fit_window``: a ring it shows)
+ TURNS,   # the tone's own turns per block, unwrapped (ROT is their fraction, in rad)
  HIST,    # RING_K phasors (real, imaginary part), the latest fresh estimates, a circular buffer
- ) = range(66)
+ ) = range(79)
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -255,6 +268,32 @@ RING_MOVE = 0.1
 #: stretches of that command extrapolate no ring (``SLOW``): what the fit leaves of it is too
 #: small, and three such means had read a ring's end 5 % off
 
+#: A ring fitted on target (its steady level within DEADBAND) is cancelled by a pulse of drive:
+#: a step of ``d`` of the drive, and back ``h`` blocks later. A step of drive leaves a ring of
+#: minus the step it makes in the steady phasor (the tip cannot jump: measured within 1 % and
+#: 0.02 rad beside a loaded mode 68 Hz from a 500 Hz tone), and the ring turns by ``P`` per
+#: block, so the pulse leaves ``-d (1 - P^-h)`` of the steady phasor, which cancels a ring of
+#: ``x`` (at the first step, relative to the steady phasor) for ``d = x / (1 - P^-h)``; ``d`` is
+#: real (the drive's amplitude), so ``h`` is the one that leaves the least of ``x``. Only rings
+#: fitted alike in two successive blocks (the one before carried on by its root, within
+#: PULSE_RES), that the tone's amplitude (fitted over ``WAMP``) shows at PULSE_MIN of the steady
+#: level or more (what would leave the 5 % band: a faster beat averages out of it), that turn by at most
+#: PULSE_TURN per block (a beat the block rate resolves, whose window response and latency can be
+#: undone), pulses of at most PULSE_DEPTH of the drive and PULSE_LONG blocks that leave at most
+#: PULSE_RES of the ring, and PULSES of them per command's watch. Figures: docs/control.md, "A ring
+#: cancelled".
+PULSE_MIN = AGREE
+PULSE_TURN = 0.5 * math.pi
+#: ... and only a ring within this share of the tone's frequency from it: the observer reads the
+#: tip through matrices designed at the tone, and a ring further off through other weights of its
+#: currents than the tip's (after a lift-off at 250 Hz a mode 104 Hz off read 2-4 times its true
+#: swing, and pulses against that doubled a settle time; a mode 68 Hz from 500 Hz read true)
+PULSE_NEAR = 0.15
+PULSE_DEPTH = 0.5
+PULSE_LONG = 2 * RING_K
+PULSE_RES = 0.3
+PULSES = 2
+
 
 @kernel
 def _watch_anew(state, i):
@@ -277,6 +316,7 @@ def _watch_anew(state, i):
     state[NH, i] = 0.0
     state[FITY, i] = 0.0
     state[RINGED, i] = 0.0
+    state[NPULSE, i] = 0.0
 
 
 @kernel
@@ -358,7 +398,68 @@ def _ring_fit(state, i):
     state[FSWING, i] = swing
     if not (swing > STILL * y and y < math.inf):
         return -1.0
+    # the ring's half nearest the tone (the mode's own; the other is its image) at the latest
+    # estimate, from the last two: what a pulse cancels (``_pulse``)
+    if abs(cmath.phase(p1)) <= abs(cmath.phase(p2)):
+        pm, po = p1, p2
+    else:
+        pm, po = p2, p1
+    cm = 0j
+    if pm != po:
+        cm = ((last - a) - po * (before - a)) * pm / (pm - po)
+    # the block before's ring (where a fit stood there), one block on
+    was = complex(state[RMR, i], state[RMI, i]) * complex(state[RPR, i], state[RPI, i])
+    state[RSAME, i] = 1.0 if state[FITY, i] > 0.0 and abs(cm - was) <= PULSE_RES * abs(cm) else 0.0
+    state[RMR, i] = cm.real
+    state[RMI, i] = cm.imag
+    state[RPR, i] = pm.real
+    state[RPI, i] = pm.imag
+    state[RSR, i] = a.real
+    state[RSI, i] = a.imag
     return y
+
+
+@kernel
+def _pulse(state, i, block):
+    """The pulse that cancels tone ``i``'s fitted ring (``PULSE_MIN``): the drive's relative
+    step ``d`` and the blocks ``h`` until it returns, or ``h = 0`` (none). The ring's half at the
+    latest estimate is read through its window (samples ``WINS``: a component turning by ``psi``
+    per sample reads ``exp(-j psi (W - 1) / 2) sin(psi W / 2) / (W sin(psi / 2))`` of itself at the
+    window's end) and carried on by its root to the middle of the block the step ramps over
+    (``LATB - 1/2`` blocks after that end)."""
+    pm = complex(state[RPR, i], state[RPI, i])
+    a = complex(state[RSR, i], state[RSI, i])
+    phi = cmath.phase(pm)
+    if not (abs(phi) > 0.0 and abs(phi) <= PULSE_TURN and abs(phi) <= 2.0 * math.pi * PULSE_NEAR * state[TURNS, i]
+            and abs(pm) > 0.0 and abs(a) > 0.0):
+        return 0.0, 0
+    w = state[WINS, i]
+    psi = phi / block
+    hw = cmath.exp(-0.5j * psi * (w - 1.0)) * (math.sin(0.5 * psi * w) / (w * math.sin(0.5 * psi)))
+    if not abs(hw) >= 0.5:
+        return 0.0, 0  # a window this blurred does not tell the ring's phase
+    lead = state[LATB, i] - 0.5
+    x = complex(state[RMR, i], state[RMI, i]) / hw * cmath.exp(lead * cmath.log(pm)) / a
+    wa = state[WAMP, i]  # ... and as much of it as the tone's amplitude shows
+    seen = abs(math.sin(0.5 * psi * wa) / (wa * math.sin(0.5 * psi)))
+    if not (abs(x) * seen >= PULSE_MIN and state[RSAME, i] != 0.0):
+        return 0.0, 0
+    period = 2.0 * math.pi / abs(phi)
+    h0 = max(1, int(math.ceil(0.25 * period)))
+    h1 = min(PULSE_LONG, int(math.floor(0.75 * period)))
+    best, d_best, h_best = PULSE_RES * abs(x), 0.0, 0
+    back = 1.0 + 0j
+    inv = 1.0 / pm
+    for h in range(1, h1 + 1):
+        back *= inv  # P^-h
+        if h < h0:
+            continue
+        q = 1.0 - back
+        d = (x.real * q.real + x.imag * q.imag) / (q.real * q.real + q.imag * q.imag)
+        left = abs(x - d * q)
+        if left <= best and abs(d) <= PULSE_DEPTH:
+            best, d_best, h_best = left, d, h
+    return d_best, h_best
 
 
 @kernel
@@ -479,6 +580,7 @@ def _send(state, i, a, pending, b, ramp):
     if abs(a - state[OUT, i]) > AGREE * state[OUT, i]:
         state[STEPPED, i] = abs(a - state[OUT, i]) / state[OUT, i] if state[OUT, i] > 0.0 else 1.0
     state[OUT, i] = a
+    state[PULSE, i] = 0.0  # (a new command ends a pulse; a pulse's own step sets it after)
     pending[P_AMP, b] = a
     pending[P_RAMP, b] = ramp
     pending[P_FLAG, b] = 1.0
@@ -546,6 +648,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             state[LOW, i] = 0.0
             if state[ON, i] != 0.0:  # switched off: ramp to silence
                 state[STEPPED, i] = 1.0
+                state[PULSE, i] = 0.0
                 state[ON, i] = 0.0
                 state[CMD, i] = 0.0
                 state[OUT, i] = 0.0
@@ -562,6 +665,8 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         c, j = index[OBS_CH, i], index[OBS_SLOT, i]
         y_now = math.hypot(est[c, j, 0, 0], est[c, j, 0, 1])  # the latest estimate's amplitude
         rising = state[RISEK, i] < state[RISE, i]
+        pulse = 0.0  # a ring-cancelling pulse's relative step in this block, and its length
+        h = 0
         if state[ON, i] != 0.0 and not rising:
             # the plant's tip per volt over the latest window, whatever the drive did in it (a
             # target that moves every block never gives a window of one command)
@@ -608,6 +713,10 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             _watch_anew(state, i)
         elif state[WAIT, i] > 0.0:
             state[WAIT, i] -= 1.0
+            back = False  # a pulse's drive returns to the command in this block
+            if state[PULSE, i] > 0.0:
+                state[PULSE, i] -= 1.0
+                back = state[PULSE, i] == 0.0
             if state[BEFORE, i] > 0.0 and _released(state, i, y_now, r, a, True):
                 a = _let_go(state, i, y_now, r)
                 if rising:  # a release drops the drive in one block, whatever rise was under way
@@ -618,7 +727,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                     state[NWATCH, i] = 0.0
                     state[PREVY, i] = 0.0
                     state[HIGH, i] = 0.0
-                if not rising:
+                if not (rising or back):
                     continue
         elif _released(state, i, y_now, r, a, False):
             a = _let_go(state, i, y_now, r)
@@ -745,42 +854,55 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
             if abs(step - 1.0) <= DEADBAND:
                 state[TRIES, i] = 0.0  # on target: keep watching (this stretch compares with the next)
                 _pace_anew(state, i)
-                continue
-            step = min(max(step, 1.0 / MAX_STEP), MAX_STEP)
-            if limited and step > 1.0:
-                step = 1.0  # the limiter holds this channel: no windup
-            if (step > 1.0 and a >= state[AMAX, i]) or step == 1.0:
-                # no change to make (at the cap, or held by the limiter): keep watching, not blind
-                # for a window after a command that is the one before (a finger letting go of a
-                # saturated tone must find the watch running)
-                state[TRIES, i] = 0.0
-                continue
-            d = 1.0 if step > 1.0 else -1.0
-            if not (step < REVERSAL and step * REVERSAL > 1.0):
-                _pace_anew(state, i)
-                state[LASTDIR, i] = d
-            elif abs(step - 1.0) > AGREE:  # (finer corrections tune, they do not hunt)
-                if d == -state[LASTDIR, i]:
-                    state[REVS, i] += 1.0
-                    if state[REVS, i] >= 2.0:
-                        state[HOLD, i] = min(2.0 * state[HOLD, i], state[HOLDMAX, i])
-                else:
-                    state[REVS, i] = 0.0
-                state[LASTDIR, i] = d
-            a = a * step
-            _watch_anew(state, i)
-            state[WAIT, i] = state[WARM, i]  # judge this command only once the estimate is all of it
-            # a step of drive may ring the plant by up to the step again (a loaded mode beside
-            # the tone beats with it: a 10 Hz tone under a stiff finger pressing, stepped x1.7,
-            # read 7 % over its new level)
-            state[BEFORE, i] = y * (max(1.0, step) + abs(step - 1.0))
-            if fit > 0.0:  # and the ring corrected across goes on meanwhile
-                state[BEFORE, i] += state[FSWING, i]
-            if (step > BIG_STEP or step * BIG_STEP < 1.0) and state[RISE, i] > 1.0:
-                state[A0, i] = state[OUT, i]  # from the drive now, not from 0
-                state[RISEK, i] = 0.0
-                state[WAIT, i] += state[RISE, i] - 1.0
-                rising = True
+                if not (fit > 0.0 and state[NPULSE, i] < PULSES):
+                    continue
+                # on target, but ringing: a pulse of drive that cancels the ring (``PULSE_MIN``)
+                d, h = _pulse(state, i, ramp)
+                # (within the floor and the cap, and never up while the limiter holds the channel)
+                if not (h > 0 and r / state[GTOP, i] <= a * (1.0 + d) <= state[AMAX, i] and not (limited and d > 0.0)):
+                    continue
+                n_p = state[NPULSE, i]
+                _watch_anew(state, i)
+                state[NPULSE, i] = n_p + 1.0
+                state[WAIT, i] = h + state[WARM, i]  # and then a window of nothing but the command
+                state[BEFORE, i] = y * (1.0 + abs(d)) + state[FSWING, i]
+                pulse = d
+            else:  # off target: correct
+                step = min(max(step, 1.0 / MAX_STEP), MAX_STEP)
+                if limited and step > 1.0:
+                    step = 1.0  # the limiter holds this channel: no windup
+                if (step > 1.0 and a >= state[AMAX, i]) or step == 1.0:
+                    # no change to make (at the cap, or held by the limiter): keep watching, not blind
+                    # for a window after a command that is the one before (a finger letting go of a
+                    # saturated tone must find the watch running)
+                    state[TRIES, i] = 0.0
+                    continue
+                d = 1.0 if step > 1.0 else -1.0
+                if not (step < REVERSAL and step * REVERSAL > 1.0):
+                    _pace_anew(state, i)
+                    state[LASTDIR, i] = d
+                elif abs(step - 1.0) > AGREE:  # (finer corrections tune, they do not hunt)
+                    if d == -state[LASTDIR, i]:
+                        state[REVS, i] += 1.0
+                        if state[REVS, i] >= 2.0:
+                            state[HOLD, i] = min(2.0 * state[HOLD, i], state[HOLDMAX, i])
+                    else:
+                        state[REVS, i] = 0.0
+                    state[LASTDIR, i] = d
+                a = a * step
+                _watch_anew(state, i)
+                state[WAIT, i] = state[WARM, i]  # judge this command only once the estimate is all of it
+                # a step of drive may ring the plant by up to the step again (a loaded mode beside
+                # the tone beats with it: a 10 Hz tone under a stiff finger pressing, stepped x1.7,
+                # read 7 % over its new level)
+                state[BEFORE, i] = y * (max(1.0, step) + abs(step - 1.0))
+                if fit > 0.0:  # and the ring corrected across goes on meanwhile
+                    state[BEFORE, i] += state[FSWING, i]
+                if (step > BIG_STEP or step * BIG_STEP < 1.0) and state[RISE, i] > 1.0:
+                    state[A0, i] = state[OUT, i]  # from the drive now, not from 0
+                    state[RISEK, i] = 0.0
+                    state[WAIT, i] += state[RISE, i] - 1.0
+                    rising = True
         # the floor: no device the model allows needs less drive for the target than this. An
         # estimate that still reads the tip above the target there does not see the tip (current
         # noise over a tip below what the observer resolves reads as a tip that stays put while
@@ -802,7 +924,9 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
         if rising:  # block by block along a raised cosine from the last drive to the command
             state[RISEK, i] += 1.0
             a = state[A0, i] + (a - state[A0, i]) * 0.5 * (1.0 - math.cos(math.pi * state[RISEK, i] / state[RISE, i]))
-        _send(state, i, a, pending, b, ramp)
+        _send(state, i, a * (1.0 + pulse), pending, b, ramp)
+        if pulse != 0.0:
+            state[PULSE, i] = h
     _siblings_let_go(state, index, target, pending, ramp)
     _siblings_wait(state, index)
     for i in range(n):  # every block a tone is held at its floor, waiting or not

@@ -46,7 +46,11 @@ steps, per controlled tone:
   lifted beam): a fresh estimate more than 2 % of the target above the latest one within 5 % of
   it (and beyond its noise and its latest block-to-block move, from the third estimate of a
   command) says the finger let go, and the command drops at once to the target over that load's
-  tip per volt, then waits ``W``: the lifted tip would swing at up to 3.7x the target for a window.
+  tip per volt, then waits ``W``: the lifted tip would swing at up to 3.7x the target for a window;
+* a ring fitted (``turn``: the last fresh estimates as a steady phasor and one real mode's ring)
+  is corrected on at its end; where that end is on target but the ring, near the tone, holds the
+  tip out of its 5 % band, a pulse of drive (a step and back, half a beat or so later) cancels
+  it: a step leaves a ring of minus the step it makes in the steady phasor (``PULSE_MIN``).
 
 With ``g = 1`` this is deadbeat for a static plant: one correction removes a model error up to a
 factor of four (a wild estimate cannot move the drive by more), and feedback never crosses the
@@ -83,6 +87,7 @@ from ._kernels import (
     HOLD0,
     HOLDMAX,
     JNOISE,
+    LATB,
     N_INDEX,
     N_STATE,
     N_TARGET,
@@ -96,7 +101,10 @@ from ._kernels import (
     SIBLING,
     SLOW,
     TARGET,
+    TURNS,
+    WAMP,
     WARM,
+    WINS,
 )
 
 #: a loaded mode rings "beside" a tone (``SLOW``) where its beat with the tone turns by less than
@@ -218,6 +226,13 @@ class AmplitudeController:
     noise : array_like, shape (n,), optional
         Per tone, the rms noise of its estimate, m (:meth:`rtctl.selfsense.rt.Observer.noise_floor`):
         estimates that move by no more than ``RING_NOISE`` times it are not fitted. None: 0.
+    window_samples : array_like of int, shape (n,), optional
+        Per tone, its observer window in samples (default ``window`` blocks): a fitted ring that
+        holds the tip out of its band on target is cancelled by a pulse of drive
+        (``PULSE_MIN``), whose timing reads the ring's phase through that window.
+    amplitude_window : array_like, shape (n,), optional
+        Per tone, the samples its amplitude is fitted over (:func:`rtctl.engine.report.fit_window`;
+        default ``window_samples``): a ring is cancelled where that amplitude shows it.
 
     Attributes
     ----------
@@ -230,7 +245,7 @@ class AmplitudeController:
 
     def __init__(self, obs_channel, obs_slot, bank_index, channel, gain_model, max_amplitude, targets,
                  latency: int, window, block: int, ring: int = 0, rise: int = 0, beside=None, gain_top=None,
-                 release=None, turn=None, noise=None):
+                 release=None, turn=None, noise=None, window_samples=None, amplitude_window=None):
         n = len(bank_index)
         self.n = n
         self.index = np.zeros((N_INDEX, n), dtype=np.int64)
@@ -287,7 +302,16 @@ class AmplitudeController:
         self.noise = np.zeros(n) if noise is None else np.broadcast_to(np.asarray(noise, dtype=float), (n,)).copy()
         if np.any(~(self.noise >= 0)) or np.any(~np.isfinite(self.noise)):
             raise ValueError("noise: each tone's estimate noise, m rms, finite and >= 0")
+        self.latency = max(0, int(latency))
+        ws = np.broadcast_to(np.asarray(window), (n,)) * self.block if window_samples is None else window_samples
+        self.window_samples = np.broadcast_to(np.asarray(ws, dtype=float), (n,)).copy()
+        wa = self.window_samples if amplitude_window is None else amplitude_window
+        self.amplitude_window = np.broadcast_to(np.asarray(wa, dtype=float), (n,)).copy()
+        for name, x in (("window_samples", self.window_samples), ("amplitude_window", self.amplitude_window)):
+            if np.any(~np.isfinite(x)) or np.any(x < 1):
+                raise ValueError(f"{name}: per tone, samples, finite and at least 1")
         self.rot = np.full(n, -1.0)
+        self.turns = np.zeros(n)
         if turn is not None:
             t = np.broadcast_to(np.asarray(turn, dtype=float), (n,))
             if np.any(~np.isfinite(t)) or np.any(t < 0):
@@ -296,6 +320,7 @@ class AmplitudeController:
             # pass for a ring where it is not short against them)
             short = np.broadcast_to(np.asarray(window), (n,)) <= RING_K - 4
             self.rot = np.where(short, 2.0 * np.pi * (t % 1.0), -1.0)
+            self.turns = t.copy()
         self.reset()
 
     @property
@@ -321,6 +346,10 @@ class AmplitudeController:
         self.state[SLOW] = self.slow
         self.state[ROT] = self.rot
         self.state[NOISE] = self.noise
+        self.state[WINS] = self.window_samples
+        self.state[WAMP] = self.amplitude_window
+        self.state[TURNS] = self.turns
+        self.state[LATB] = self.latency
         self.state[RISE] = self.rise
         self.target[TARGET] = self.targets0
         self.target[ENABLE] = 0.0

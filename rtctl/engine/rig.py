@@ -244,6 +244,7 @@ class Rig:
         thousand calls takes LLVM longer to build than anyone waits)."""
         from ..control import AmplitudeController
         from ..control.amplitude import RELEASE_WINDOW, RELEASE_Z
+        from .report import fit_window
 
         self.controlled = {}  # bank tone index -> (controller, its column)
         per_channel = {}
@@ -262,10 +263,11 @@ class Rig:
                     # each tone's share of max_voltage, a hair below it: a sine at exactly the
                     # bound would count as limited on rounding alone
                     cols.append((c, slot, b, tone.channel, f, tone.target_m / len(bank),
-                                 g.max_voltage * (1.0 - 1e-9) / per_channel[tone.channel]))
+                                 g.max_voltage * (1.0 - 1e-9) / per_channel[tone.channel],
+                                 fit_window(tone.freqs) * self.fs))  # what the tone's amplitude is fitted over
             if not cols:
                 continue
-            c_, slot, bank, chan, f, target, amax = (np.array(x) for x in zip(*cols))
+            c_, slot, bank, chan, f, target, amax, wamp = (np.array(x) for x in zip(*cols))
             # the model's tip per commanded volt under the assumed finger (amplifier included)
             amp = np.abs(1.0 + 1j * f / g.amplifier.bandwidth)
             tip = np.abs(obs.beam.response(f, finger)["tip"]) / amp
@@ -291,7 +293,7 @@ class Rig:
                                RELEASE_Z * noise, -1.0)
             ctl = AmplitudeController(c_, slot, bank, chan, tip, amax, target, self.latency, window, self.block,
                                       ring, rise, beside, np.maximum(top, tip), release, f * self.block / self.fs,
-                                      noise)
+                                      noise, obs.windows[c_], wamp)
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
