@@ -71,6 +71,7 @@ from rtctl.control._kernels import (
     PULSE_NEAR,
     PULSE_RES,
     PULSE_TURN,
+    PULSED,
     PULSES,
     REF,
     REFV,
@@ -428,6 +429,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 pulses = col[NPULSE] + 1
                 _watch_anew(col)
                 col[NPULSE], col[WAIT], col[BEFORE] = pulses, h + col[WARM], mean * (1 + abs(d)) + col[FSWING]
+                col[PULSED] += 1
                 pulse = (d, h)
             if pulse is None:  # off target: correct
                 step = min(max(step, 1 / MAX_STEP), MAX_STEP)

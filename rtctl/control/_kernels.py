@@ -91,8 +91,9 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  RSAME,   # 1: the ring fitted in this block is the one of the block before, carried on by its root
  WAMP,    # samples a tone's amplitude is fitted over (``report.fit_window``: a ring it shows)
  TURNS,   # the tone's own turns per block, unwrapped (ROT is their fraction, in rad)
+ PULSED,  # ring-cancelling pulses since the controller's reset
  HIST,    # RING_K phasors (real, imaginary part), the latest fresh estimates, a circular buffer
- ) = range(79)
+ ) = range(80)
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -864,6 +865,7 @@ def amplitude_control(est, drive_est, index, target, state, pending, lim_counts,
                 n_p = state[NPULSE, i]
                 _watch_anew(state, i)
                 state[NPULSE, i] = n_p + 1.0
+                state[PULSED, i] += 1.0
                 state[WAIT, i] = h + state[WARM, i]  # and then a window of nothing but the command
                 state[BEFORE, i] = y * (1.0 + abs(d)) + state[FSWING, i]
                 pulse = d

@@ -244,7 +244,7 @@ def _control(rig, rows) -> None:
     from the controllers' final state."""
     if not rig.controllers:
         return  # open loop: rtctl.control is neither needed nor imported
-    from ..control._kernels import AMAX, BANK, CHANNEL, CMD, EST, LOWN, NREL, OBS_CH, SAT
+    from ..control._kernels import AMAX, BANK, CHANNEL, CMD, EST, LOWN, NREL, OBS_CH, PULSED, SAT
 
     owner = {b: i for i, bank in enumerate(rig.stimulus.bank_index) for b in bank}  # bank tone -> scene tone
     for _, st, ctl in rig.controllers:
@@ -285,6 +285,8 @@ def _control(rig, rows) -> None:
             row["at_floor"] = row["floor_s"] > 0.0
             # how often its drive dropped at once for a finger that let go (the release rule)
             row["releases"] = row.get("releases", 0) + int(ctl.state[NREL, j])
+            # and how often it cancelled a ring with a pulse of drive (rtctl.control.amplitude)
+            row["pulses"] = row.get("pulses", 0) + int(ctl.state[PULSED, j])
             # the rms its estimate's noise leaves in the amplitude (over its tones' sines)
             n2 = (row.get("noise_um") or 0.0) ** 2 + (1e6 * rig.control_noise.get(int(ctl.index[BANK, j]), 0.0)) ** 2
             row["noise_um"] = math.sqrt(n2)

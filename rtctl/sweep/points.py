@@ -214,7 +214,7 @@ def selfsense_metrics(scene) -> dict:
 
 #: Per-channel values of a run's summary that a sweep keeps (none depends on the wall clock).
 RUN_KEYS = ("true_um", "error_pct", "settle_ms", "felt", "saturated", "reachable_um", "estimated_um", "floor_s",
-            "releases")
+            "releases", "pulses")
 
 
 def run_metrics(scene, runner) -> dict:
