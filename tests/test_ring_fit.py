@@ -110,6 +110,13 @@ def test_the_fit_is_for_short_windows_and_needs_a_turn_and_a_noise():
             rot(3, bad)
         with pytest.raises(ValueError, match="noise"):
             AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [5e-6], 1, 3, BLOCK, noise=bad)
+    # the windows a pulse reads its ring through: samples, at least 1 (default the window's blocks)
+    ctl = AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [5e-6], 1, 3, BLOCK)
+    assert ctl.window_samples.tolist() == ctl.amplitude_window.tolist() == [3 * BLOCK]
+    for bad in (0.5, np.nan, np.inf):
+        for name in ("window_samples", "amplitude_window"):
+            with pytest.raises(ValueError, match=name):
+                AmplitudeController([0], [0], [0], [0], [1e-7], [150.0], [5e-6], 1, 3, BLOCK, **{name: [bad]})
 
 
 def loop(turn, blocks=400, event=150, window=3, latency=1, gain=1e-7, target=5e-6):
