@@ -1,6 +1,7 @@
 """The amplitude controller's ring fit: a steady phasor and one real mode's decaying ring, read
-from the last fresh estimates, against the closed form they were made from; and the loop it
-shortens, on a plant whose tip rings after its gain changes."""
+from the last fresh estimates, against the closed form they were made from; the loop it
+shortens, on a plant whose tip rings after its gain changes; and the pulse of drive that cancels
+such a ring once the drive is on target, against the ring's free decay and the naive twin."""
 
 from __future__ import annotations
 
@@ -163,8 +164,7 @@ def test_a_ring_after_a_plant_change_is_corrected_on_its_end():
     assert moved_old[0] > moved[0] and (moved_old.size > 1 or abs(old[-1] / need - 1) > 1e-9), moved_old
 
 
-def pulse_loop(theta, rho, blocks=300, event=100, window=3, latency=1, gain=1e-7, target=5e-6, w_samples=None,
-               limit_from=None):
+def pulse_loop(theta, rho, blocks=300, event=100, window=3, latency=1, gain=1e-7, target=5e-6, limit_from=None):
     """A tone's tip phasor sample by sample on a plant with one mode beside it, turning by ``theta``
     and decaying by ``rho`` per block: a step of drive leaves a ring of minus the step it makes in
     the steady phasor (the tip cannot jump), each sample of a ramp its share; at ``event`` the
@@ -175,7 +175,7 @@ def pulse_loop(theta, rho, blocks=300, event=100, window=3, latency=1, gain=1e-7
     B = BLOCK
     step = (rho * np.exp(1j * theta)) ** (1.0 / B)
     ctl = AmplitudeController([0], [0], [0], [0], [gain], [150.0], [target], latency, window, B, ring=48,
-                              turn=1 / 3, window_samples=None if w_samples is None else [w_samples])
+                              turn=1 / 3)
     ctl.target[ENABLE] = 1.0
     twin = [a.copy() for a in (ctl.index, ctl.target, ctl.state)]
     est, drive_est = np.zeros((1, 1, 9, 2)), np.zeros((1, 1, 2))
