@@ -451,12 +451,13 @@ class Models:
         :class:`~rtctl.selfsense.rt.Observer` (one window for all channels or one per channel;
         default :func:`~rtctl.selfsense.rt.block_window`). An
         ill-conditioned tone is refused (ModelError)."""
+        from .selfsense.observer import N_EST
         from .selfsense.rt import Observer
 
         return Observer(self.observer_beam(group), freqs, fs, block, self.frontend(group, fs),
                         window=window, image_load=self.finger(group), max_cond=OBSERVER_MAX_COND, wave=wave,
                         hop=hop, lstsq=lstsq, image_loads=self.other_fingers(group), prefilter=prefilter,
-                        **({} if rows is None else {"rows": rows}))
+                        rows=N_EST if rows is None else rows)
 
     def observer_beam(self, group):
         """The transfer-matrix twin of ``group``'s beam the observer is designed on."""
