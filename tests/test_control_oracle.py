@@ -57,7 +57,7 @@ def test_a_lift_off_overshoots_at_the_held_drive_and_not_with_the_oracle_at_the_
     from rtctl.engine.report import against_target
 
     n = [k for k, (f, b, _) in enumerate(sweep.TONES) if (f, b) == (40, 0)][0]
-    warm = oracle._warm_blocks({})
+    warm, _ = oracle._loop_blocks({})
     at_event = oracle.oracle({}, [0] * len(sweep.TONES))
     late = oracle.oracle({}, warm)
     t0, t1 = at_event["events"][1], at_event["events"][2]
@@ -87,3 +87,50 @@ def test_acts_by_is_the_last_delay_of_an_unbroken_run_of_meets():
     assert oracle._acts_by(row([ok, ok, ok, *rest]), "settle") == ladder[-1]
     assert oracle._acts_by(row([ok, ovs, ok, *[ok] * len(rest)]), "overshoot") == 0
     assert oracle._acts_by(row([slow, ok, ok, *rest]), "settle") is None
+
+
+def test_the_currents_tell_of_an_event_first_when_the_devices_latency_says():
+    """d' counts only what a loop has read before it sets each delay's drive: nothing of the
+    event before the device's I/O latency and the controller's block have passed (the sim
+    delivers a block's currents one block later), then the lift-off at once."""
+    _, first = oracle._loop_blocks({})
+    assert first == 2  # the sim's one block of I/O latency, then the controller's block
+    told = oracle.information({})
+    lifted = sweep.SEGMENTS.index("lifted") - 1
+    for per_tone in told:
+        for d in per_tone:
+            assert all(d[k] == 0.0 for k in oracle.LADDER if k < first)
+    assert min(d[first] for d in told[lifted]) > 100.0  # the lift-off is plain in the first block read
+    for per_tone in told:
+        for d in per_tone:
+            later = [d[k] for k in oracle.LADDER if k >= first]
+            assert all(b >= a for a, b in zip(later, later[1:]))  # more blocks read tell no less
+
+
+def test_the_noise_d_prime_is_measured_in_is_the_sensed_currents_own():
+    """d' divides the noise-free difference by the noise the device adds to every sensed sample:
+    the spread of a noisy run about the same run without noise."""
+    import numpy as np
+
+    from rtctl import scene
+
+    clean = oracle._held_sensed({}, (), 0, 300, 16)
+    noisy = oracle._held_sensed({}, (), 0, 300, 16, noisy=True)
+    assert np.std(noisy - clean) == pytest.approx(oracle.noise_rms(scene.load(sweep.SCENE)), rel=0.03)
+
+
+def test_a_miss_is_the_first_of_beam_block_latency_whose_oracle_misses_it_too():
+    """The classes nest: the oracle at the event, then at the first read, then after WARM; a
+    miss goes to the first of them that misses it too, and to the loop if none does."""
+    ok = {"settle_ms": 20.0, "overshoot_pct": 1.0}
+    ovs = {"settle_ms": 20.0, "overshoot_pct": 40.0}
+
+    def row(at_event, first_read, after_warm):
+        return {"required_ms": 50.0, "closed": ovs, "at_event": at_event, "first_read": first_read,
+                "after_warm": after_warm}
+
+    assert oracle.classify(row(ovs, ovs, ovs)) == {"overshoot": "beam"}
+    assert oracle.classify(row(ok, ovs, ovs)) == {"overshoot": "block"}
+    assert oracle.classify(row(ok, ok, ovs)) == {"overshoot": "latency"}
+    assert oracle.classify(row(ok, ok, ok)) == {"overshoot": "loop"}
+    assert oracle.classify({**row(ovs, ovs, ovs), "closed": ok}) == {}
