@@ -37,7 +37,7 @@ principle of a loop that tests each block's currents for the event; 0 means noth
 has been read yet. ``--against FILE`` (``control_sweep.py --json`` output) adds the closed loop's
 figures and sorts its misses by these classes.
 
-    python bench/control_oracle.py [--quick] [--against SWEEP.json] [--json]
+    python bench/control_oracle.py [--quick] [--against SWEEP.json] [--json] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ import control_sweep as cs
 import numpy as np
 
 
-def _loop_blocks(device: dict) -> tuple[list[int], int]:
+def _loop_blocks(device: dict, extra=()) -> tuple[list[int], int]:
     """Per sweep tone, the closed loop's WARM (blocks from a command to a window of nothing
     older): what the controller of the sweep's scene waits for; and the first delay (blocks
     after an event) whose drive a loop can set on currents read from after it: the device's I/O
@@ -60,7 +60,8 @@ def _loop_blocks(device: dict) -> tuple[list[int], int]:
     from rtctl.control._kernels import WARM
     from rtctl.engine.rig import build
 
-    rig = build(scene.load(cs.SCENE, [*cs.overrides(device, calibrated=False), "events=[]", "timing.duration=0.1"]))
+    rig = build(scene.load(cs.SCENE, [*cs.overrides(device, calibrated=False), *extra, "events=[]",
+                                      "timing.duration=0.1"]))
     out = []
     for bank in rig.stimulus.bank_index:
         ctl, j = rig.controlled[bank[0]]
@@ -68,7 +69,7 @@ def _loop_blocks(device: dict) -> tuple[list[int], int]:
     return out, int(rig.latency) + 1
 
 
-def _held_sensed(device: dict, events, seg: int, k0: int, n: int, noisy: bool = False) -> np.ndarray:
+def _held_sensed(device: dict, events, seg: int, k0: int, n: int, noisy: bool = False, extra=()) -> np.ndarray:
     """The sensed currents (A, as the ADC reads them) the loop reads in blocks ``k0 ... k0 + n - 1`` of an
     open-loop run through ``events`` (noise-free unless ``noisy``), every tone's drive set from
     the start for its target under segment ``seg``'s finger and held."""
@@ -76,7 +77,7 @@ def _held_sensed(device: dict, events, seg: int, k0: int, n: int, noisy: bool = 
     from rtctl.dsp._kernels import P_AMP, P_FLAG, P_RAMP
     from rtctl.engine.rig import build
 
-    s = scene.load(cs.SCENE, [*cs.overrides(device, calibrated=False, events=events), "control.mode=open",
+    s = scene.load(cs.SCENE, [*cs.overrides(device, calibrated=False, events=events), *extra, "control.mode=open",
                               "control.observe=false", *([] if noisy else ["actuator.lateral.sense.noise=0"])])
     rig = build(s)
     tid = rig.queue.target_id(rig.bank.pending)
@@ -84,7 +85,7 @@ def _held_sensed(device: dict, events, seg: int, k0: int, n: int, noisy: bool = 
     for k in range(k0 + n):
         rig.apply_schedule(k)
         for n_tone in range(len(cs.TONES) if k == 0 else 0):
-            amps = _amplitudes(device, seg, n_tone, s.actuator[0].max_voltage)
+            amps = _amplitudes(device, seg, n_tone, s.actuator[0].max_voltage, extra)
             for b, a in zip(rig.stimulus.bank_index[n_tone], amps):
                 rig.queue.post(tid, P_AMP, b, a)
                 rig.queue.post(tid, P_RAMP, b, float(s.timing.block))
@@ -104,19 +105,19 @@ def noise_rms(s) -> float:
     return float(volts / sense.shunt)
 
 
-def information(device: dict) -> list[list[dict]]:
+def information(device: dict, extra=()) -> list[list[dict]]:
     """Per event, per tone: d' of the currents a loop has read by the time it sets the drive of
     each ``LADDER`` delay (``{delay: d'}``), the drive held at the one for the segment before."""
     from rtctl import scene
     from rtctl.events import block_of
 
-    s = scene.load(cs.SCENE)
+    s = scene.load(cs.SCENE, list(extra))
     block, noise = s.timing.block, noise_rms(s)
     horizon = max(LADDER)
     out = []
     for j, (at, _) in enumerate(cs.EVENTS, start=1):
         kb = block_of(at, s.timing.fs, block)
-        with_, without = (_held_sensed(device, cs.EVENTS[:m], j - 1, kb, horizon) for m in (j, j - 1))
+        with_, without = (_held_sensed(device, cs.EVENTS[:m], j - 1, kb, horizon, extra=extra) for m in (j, j - 1))
         rows = with_.shape[0] // len(cs.TONES)
         per_tone = []
         for n in range(len(cs.TONES)):
@@ -128,15 +129,15 @@ def information(device: dict) -> list[list[dict]]:
     return out
 
 
-def _amplitudes(device: dict, seg: int, n: int, vmax: float) -> np.ndarray:
+def _amplitudes(device: dict, seg: int, n: int, vmax: float, extra=()) -> np.ndarray:
     """Each sine's amplitude (V) of tone ``n`` for its target under segment ``seg``'s finger (the
     device's own response), capped where out of reach."""
     target = cs.TONES[n][2] * 1e-6
-    gain = cs.gains(device)[seg][n] * 1e-6  # m/V per sine
+    gain = cs.gains(device, extra=extra)[seg][n] * 1e-6  # m/V per sine
     return np.minimum(target / gain.size / gain, vmax / gain.size)
 
 
-def oracle(device: dict, delays: list[int]) -> dict:
+def oracle(device: dict, delays: list[int], extra=()) -> dict:
     """One open-loop run of the sweep's tones on ``device``: each sine's amplitude set for the
     target by the device's own response under the finger of each segment, moved ``delays[n]``
     blocks after each event. Returns the true tip (um), its times (s) and the event times."""
@@ -145,14 +146,15 @@ def oracle(device: dict, delays: list[int]) -> dict:
     from rtctl.engine.rig import build
     from rtctl.events import block_of
 
-    s = scene.load(cs.SCENE, [*cs.overrides(device, calibrated=False), "control.mode=open", "control.observe=false"])
+    s = scene.load(cs.SCENE, [*cs.overrides(device, calibrated=False), *extra, "control.mode=open",
+                              "control.observe=false"])
     fs, block = s.timing.fs, s.timing.block
     vmax = s.actuator[0].max_voltage
     rig = build(s)
     tid = rig.queue.target_id(rig.bank.pending)
 
     def amplitudes(seg: int, n: int) -> np.ndarray:
-        return _amplitudes(device, seg, n, vmax)
+        return _amplitudes(device, seg, n, vmax, extra)
 
     moves: dict[int, list] = {0: [(0, n) for n in range(len(cs.TONES))]}
     ev_blocks = [block_of(at, fs, block) for at, _ in cs.EVENTS]
@@ -180,19 +182,19 @@ def oracle(device: dict, delays: list[int]) -> dict:
 LADDER = (0, 1, 2, 4, 8, 16, 32)
 
 
-def figures(device: dict) -> list[dict]:
+def figures(device: dict, extra=()) -> list[dict]:
     """Per tone, per event segment: the oracle's settle time and overshoot at the event, at the
     first read, after each of ``LADDER``'s delays and after the closed loop's WARM; and the
     currents' d' at each delay (:func:`information`)."""
     from rtctl import scene
     from rtctl.engine import report
 
-    vmax = scene.load(cs.SCENE).actuator[0].max_voltage
-    g = cs.gains(device)
-    warm, first = _loop_blocks(device)
-    ladder = {d: oracle(device, [d] * len(cs.TONES)) for d in sorted({*LADDER, first})}
-    runs = {"at_event": ladder[0], "first_read": ladder[first], "after_warm": oracle(device, warm)}
-    told = information(device)
+    vmax = scene.load(cs.SCENE, list(extra)).actuator[0].max_voltage
+    g = cs.gains(device, extra=extra)
+    warm, first = _loop_blocks(device, extra)
+    ladder = {d: oracle(device, [d] * len(cs.TONES), extra) for d in sorted({*LADDER, first})}
+    runs = {"at_event": ladder[0], "first_read": ladder[first], "after_warm": oracle(device, warm, extra)}
+    told = information(device, extra)
     ends = runs["at_event"]["events"][1:] + [cs.DURATION]
     rows = []
     for n, (f, b, target) in enumerate(cs.TONES):
@@ -257,13 +259,20 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="the sweep's five devices instead of all 33")
     ap.add_argument("--against", help="control_sweep.py --json output: sort its misses by the oracle's")
     ap.add_argument("--json", action="store_true", help="print only the JSON object")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a scene override for every run (as control_sweep.py --set: a beam of another geometry)")
     a = ap.parse_args(argv)
+    sweep = json.loads(Path(a.against).read_text()) if a.against else {}
+    if a.against and sweep.get("set", []) != a.set:
+        print(f"--against {a.against} was swept with --set {sweep.get('set', [])}, this run has {a.set}: "
+              "its misses would be sorted by another device's oracle", file=sys.stderr)
+        return 2
     rows = []
     for dev in cs.devices(a.quick):
-        rows += figures(dev)
+        rows += figures(dev, a.set)
         if not a.json:
             print(f"  {cs.label(dev)}: done", file=sys.stderr)
-    closed = _closed(json.loads(Path(a.against).read_text())) if a.against else {}
+    closed = _closed(sweep) if a.against else {}
     counts = {"closed": 0, "beam": 0, "block": 0, "latency": 0, "loop": 0}
     acts: dict[int, list] = {}  # the latency class by how soon the oracle must act: d' by then
     for r in rows:
@@ -308,7 +317,7 @@ def main(argv=None) -> int:
               f"{counts['loop']}")
         from rtctl import scene
 
-        timing = scene.load(cs.SCENE).timing
+        timing = scene.load(cs.SCENE, a.set).timing
         block_ms = 1e3 * timing.block / timing.fs
         for d in sorted(acts):
             later = LADDER.index(d) + 1

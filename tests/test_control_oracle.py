@@ -134,3 +134,15 @@ def test_a_miss_is_the_first_of_beam_block_latency_whose_oracle_misses_it_too():
     assert oracle.classify(row(ok, ok, ovs)) == {"overshoot": "latency"}
     assert oracle.classify(row(ok, ok, ok)) == {"overshoot": "loop"}
     assert oracle.classify({**row(ovs, ovs, ovs), "closed": ok}) == {}
+
+
+def test_a_sweep_of_another_beam_is_refused(tmp_path, capsys):
+    """``--against`` a sweep run with other ``--set`` overrides would sort one device's misses by
+    another's oracle: refused before any run, naming both."""
+    import json
+
+    swept = tmp_path / "sweep.json"
+    swept.write_text(json.dumps({"set": ["actuator.lateral.beam.length=12e-3"], "cases": []}))
+    assert oracle.main(["--quick", "--against", str(swept)]) == 2
+    err = capsys.readouterr().err
+    assert "beam.length=12e-3" in err and "another device" in err
