@@ -391,15 +391,12 @@ def test_a_ring_after_a_press_is_cancelled_and_counted(tmp_path):
     tip still swings by about a quarter of the target, decaying over some 27 ms; with the drive
     held it leaves the 5 % band 56 ms after the press (docs/control.md, "A ring cancelled"). A
     pulse of drive cancels the ring: within 5 % by 50 ms, and the summary counts the pulse."""
-    import importlib.util
-    from pathlib import Path
+    from bench_module import load
 
     from rtctl.engine.report import against_target
     from rtctl.trace import TraceReader
 
-    spec = importlib.util.spec_from_file_location("control_sweep", Path(__file__).parents[1] / "bench/control_sweep.py")
-    sweep = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sweep)
+    sweep = load("control_sweep")
     press, end = 0.6, 0.8
     pressing = ((press, {"finger.preload": 1.96}),)  # 50 g to 200 g
     s = scene.load(sweep.SCENE, sweep.overrides(sweep.LOW, ((500, 0, 10.5),), True, pressing, end))

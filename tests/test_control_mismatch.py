@@ -15,17 +15,14 @@ OVERSHOOT_MISSES); every other tone and segment must meet it, the beat pair incl
 is one beat period, read by least squares).
 """
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
+from bench_module import load
 
 from rtctl.engine.report import SETTLE_BAND, against_target, amplitude_track, fit_window
 
-_spec = importlib.util.spec_from_file_location("control_sweep", Path(__file__).parents[1] / "bench/control_sweep.py")
-sweep = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(sweep)
+sweep = load("control_sweep")
 
 TONES = ((10, 0, 6.8), (80, 0, 6.0), (1000, 0, 4.4), (250, 30, 6.6), (250, 0, 28.4))
 CORNERS = {"low": sweep.LOW, "high": sweep.HIGH}

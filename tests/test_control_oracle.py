@@ -3,27 +3,13 @@ drive, set from the simulated device's own frequency response under each segment
 put the device's true tip on every reachable target once the segment has settled (else its
 settle times and overshoots would measure the oracle, not the beam)."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
+from bench_module import load
 
 from rtctl.engine.report import fit_amplitudes
 
-BENCH = Path(__file__).parents[1] / "bench"
-
-
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod  # the oracle imports the sweep by name
-    spec.loader.exec_module(mod)
-    return mod
-
-
-sweep = _load("control_sweep")
-oracle = _load("control_oracle")
+sweep = load("control_sweep")
+oracle = load("control_oracle")
 
 
 @pytest.mark.parametrize("device", [{}, sweep.LOW], ids=["nominal", "low"])

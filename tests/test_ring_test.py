@@ -4,25 +4,11 @@ transfer-matrix predictions were not made from): the load in use explains a stea
 low tones' currents to the sensor noise, and the first block read after an event names the free
 tip after a lift-off and a finger after a press or a landing."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
+from bench_module import load
 
-BENCH = Path(__file__).parents[1] / "bench"
-
-
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod  # the test imports the sweep by name
-    spec.loader.exec_module(mod)
-    return mod
-
-
-sweep = _load("control_sweep")
-ring = _load("ring_test")
+sweep = load("control_sweep")
+ring = load("ring_test")
 
 
 @pytest.fixture(scope="module")

@@ -3,27 +3,14 @@ plant's operations per channel-sample must be what the realization's own matrice
 of the kernel's forms."""
 
 import doctest
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from bench_module import load
 
 from rtctl.plant import BUILTIN, Amplifier, BeamSpec, BimorphPlant, CurrentSense, Layer, MaxwellLoad, SimGroup, build_fe
 
-BENCH = Path(__file__).parents[1] / "bench"
-
-
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-roofline = _load("roofline")
+roofline = load("roofline")
 
 
 def _group(form, n_modes=4, finger=True):
