@@ -40,6 +40,7 @@ from rtctl.control._kernels import (
     JNOISE,
     LASTDIR,
     LATB,
+    LIFTED,
     LIMSEEN,
     LIVE_DRIVE,
     LOW,
@@ -147,6 +148,9 @@ def _let_go(col, y, r, a, waiting=False):
     correction explains."""
     if not (0 < y < math.inf and r > 0) or col[JNOISE] < 0:
         return False
+    if col[LIFTED] != 0 and not waiting and a * col[GMAX] > (1 + RELEASE) * r:  # the test saw the free beam ring
+        col[HIGH], col[PREVY] = RELEASE_RUN, y
+        return True
     rip = col[RIPPLE]
     base = col[ANCHOR] if col[ANCHOR] > 0 and not waiting else col[BEFORE]
     col[NWATCH] += 1

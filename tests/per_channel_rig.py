@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from rtctl.control import AmplitudeController, amplitude_control
+from rtctl.control._kernels import JNOISE
 from rtctl.control.amplitude import RELEASE_WINDOW, RELEASE_Z
 from rtctl.engine.report import fit_window
 from rtctl.engine.rig import Rig
@@ -66,9 +67,21 @@ class PerChannelRig(Rig):
 
     def _stages(self) -> list:
         """The rig's stages with a control stage per channel right after its group's observer (the
-        rig's own list matches controllers to whole-group stages only, so it has none)."""
+        rig's own list matches controllers to whole-group stages only, so it has none), and before
+        the observer a lift-off test per controller with a released tone, each testing the whole
+        group for itself (its own state) and flagging its channel's tones."""
+        from rtctl.selfsense.lift import LiftTest, lift_stage
+
         stages = super()._stages()
         for name, st, _, _ in self.observer_stages:
+            at = [s.name for s in stages].index(f"observer {name}")
+            lifts = []
+            for cname, seen, ctl in self.controllers:
+                lift = LiftTest(st.observer)
+                if seen.stage is st and lift.active and np.any(ctl.state[JNOISE] >= 0.0):
+                    args = lift.stage_args(st.args, ctl, seen.observer.first)
+                    lifts.append(Stage(f"lift-off {cname}", lift_stage, args, status=None, reset=lift.reset))
+            stages[at:at] = lifts
             at = [s.name for s in stages].index(f"observer {name}") + 1
             mine = [Stage(f"control {cname}", amplitude_control,
                           dict(est=seen.observer.est, drive_est=seen.observer.u_out, **ctl.args,

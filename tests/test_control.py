@@ -9,6 +9,7 @@ from naive_control import amplitude_control as naive
 
 from rtctl.control import AmplitudeController, amplitude_control, design
 from rtctl.control._kernels import (
+    BEFORE,
     CMD,
     ENABLE,
     FSWING,
@@ -16,6 +17,7 @@ from rtctl.control._kernels import (
     HOLD,
     HOLD0,
     HOLDMAX,
+    LIFTED,
     LOW,
     MAX_STEP,
     NREL,
@@ -344,6 +346,10 @@ def test_the_release_rule_matches_its_naive_twin(seed):
     for k in range(2000):
         if k % 400 == 399:  # let go, or press: a new plant for every tone
             plant = np.where(rng.uniform(size=n) < 0.6, top * rng.uniform(0.7, 1.0, n), 0.5 * model)
+        # the lift-off test's flag, written every block: up for some tones in the block after a
+        # change of plant (whether it let go or pressed), and at random now and then
+        lifted = (rng.uniform(size=n) < (0.5 if k % 400 == 0 else 0.002)).astype(float)
+        ctl.state[LIFTED] = twin[2][LIFTED] = lifted
         if k % 700 == 699:
             j = rng.integers(n)
             ctl.target[TARGET, j] = twin[1][TARGET, j] = rng.uniform(1e-7, 5e-6)
@@ -358,6 +364,56 @@ def test_the_release_rule_matches_its_naive_twin(seed):
         scale = _twins_agree(sk, sn, ctl.state, twin[2], pend_k, pend_n, scale)
     assert np.all(ctl.state[NREL, release < 0] == 0)
     assert np.sum(ctl.state[NREL, release >= 0]) > 0
+
+
+@pytest.mark.parametrize("flag, rule, gain, fires", [(True, True, 3e-7, True), (False, True, 3e-7, False),
+                                                    (True, False, 3e-7, False), (True, True, 1.01e-7, False)])
+def test_the_lift_off_flag_releases_in_the_block_it_is_read(flag, rule, gain, fires):
+    """A tone held on target (tip per volt 1e-7) whose plant turns 3x as responsive; in the block
+    whose estimate first holds the new plant the lift-off test flags its channel. The release then
+    comes in that block (the drive the target over the most responsive load, 3e-7) where the rule
+    would wait for two estimates in a row: the tip is over the target for ``latency + 1`` blocks,
+    against ``fires + 1 = 3`` by the estimates. No release without the flag, on a tone without the
+    release rule, or where the most responsive load (``gain_top``) would not take the held drive
+    over the target by the rule's 2 %."""
+    target, window, latency = 5e-6, 30, 1
+    loop = Loop([1e-7], [1e-7], [target], latency=latency, window=window, gain_top=[gain],
+                release=[0.001 * target] if rule else None)
+    loop.run(400)
+    assert loop.ctl.state[CMD, 0] == pytest.approx(target / 1e-7, rel=0.002)
+    loop.plant[0] = 3e-7
+    loop.run(latency)
+    loop.ctl.state[LIFTED, 0] = float(flag)
+    loop.block()
+    loop.ctl.state[LIFTED, 0] = 0.0
+    assert loop.ctl.state[NREL, 0] == fires
+    if fires:
+        assert loop.ctl.state[CMD, 0] == pytest.approx(target / 3e-7, rel=1e-12)
+        tips = loop.run(40)[400:, 0]
+        assert int(np.count_nonzero(tips > 1.1 * target)) == latency + 1
+
+
+def test_no_lift_off_flag_is_trusted_while_a_command_s_window_is_waited_out():
+    """The test's premise is a plant that was steady under the finger: in the blocks after a
+    correction (the plant turned half as responsive, the loop doubled its drive) the flag
+    releases nothing, though the rule watches those blocks for a rise; once the wait is over it
+    does."""
+    target = 5e-6
+    loop = Loop([1e-7], [1e-7], [target], latency=1, window=30, gain_top=[3e-7], release=[0.001 * target])
+    loop.run(400)
+    held = loop.ctl.state[CMD, 0]
+    loop.plant[0] = 0.5e-7
+    while loop.ctl.state[CMD, 0] == held:
+        loop.block()
+    assert loop.ctl.state[WAIT, 0] > 30 and loop.ctl.state[BEFORE, 0] > 0  # watched while waiting
+    while loop.ctl.state[WAIT, 0] > 0:
+        loop.ctl.state[LIFTED, 0] = 1.0
+        loop.block()
+    assert loop.ctl.state[NREL, 0] == 0
+    loop.run(20)
+    loop.ctl.state[LIFTED, 0] = 1.0
+    loop.block()
+    assert loop.ctl.state[NREL, 0] == 1
 
 
 def test_a_ripple_is_averaged_out_not_chased():

@@ -92,8 +92,10 @@ from ..safety import CONTROL_FLOOR, CONTROL_FROZEN, CONTROL_SATURATED
  WAMP,    # samples a tone's amplitude is fitted over (``report.fit_window``: a ring it shows)
  TURNS,   # the tone's own turns per block, unwrapped (ROT is their fraction, in rad)
  PULSED,  # ring-cancelling pulses since the controller's reset
+ LIFTED,  # 1: the block of currents read in this block showed the finger lift off (written by the
+          # group's lift-off test, ``rtctl.selfsense.lift``, before this stage; 0: not, or no test)
  HIST,    # RING_K phasors (real, imaginary part), the latest fresh estimates, a circular buffer
- ) = range(80)
+ ) = range(81)
 
 # target rows (written through the engine's parameter queue)
 TARGET, ENABLE = 0, 1
@@ -471,6 +473,14 @@ def _released(state, i, y, r, a, waiting):
     the anchor nor the ripple moves, the window's slide being the loop's own)."""
     if not (y > 0.0 and y < math.inf and r > 0.0) or state[JNOISE, i] < 0.0:
         return False
+    if state[LIFTED, i] != 0.0 and not waiting and a * state[GMAX, i] > (1.0 + RELEASE) * r:
+        # the currents read in this block showed the free beam ring: a release now, before any
+        # window's estimate can rise (they show a lift-off a window's share at a time). Not while
+        # waiting out a command's window: the test's premise is a plant that was steady under the
+        # finger (after a landing's correction a finger stiffer than the model's read as no finger)
+        state[HIGH, i] = RELEASE_RUN
+        state[PREVY, i] = y
+        return True
     rip = state[RIPPLE, i]
     # (after a wait, until an estimate comes on target, what the wait was watched against)
     base = state[BEFORE, i] if waiting or state[ANCHOR, i] <= 0.0 else state[ANCHOR, i]

@@ -97,8 +97,10 @@ class Rig:
         # ObserverStage, group, its first channel)
         self.observer_stages = []
         # what is observed, per group: (name, ObserverStage, group, first channel); controllers,
-        # one per observed group with a controlled tone: (group name, its ObserverStage, controller)
-        self.observers, self.controllers = [], []
+        # one per observed group with a controlled tone: (group name, its ObserverStage, controller);
+        # lift-off tests, one per controlled group with a released tone: (ObserverStage, controller,
+        # LiftTest)
+        self.observers, self.controllers, self.lifts = [], [], []
         #: what the build found that the run's summary should say (a target under the noise floor)
         self.warnings = []
         #: per controlled bank tone, the rms of its tip estimate's noise, m (Observer.noise_floor)
@@ -297,6 +299,16 @@ class Rig:
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
+            if np.any(release >= 0.0):
+                # a lift-off told from the first block of currents read after it, for the release
+                from ..selfsense.lift import LiftTest
+
+                lift = LiftTest(obs)
+                if lift.active:
+                    self.lifts.append((st, ctl, lift))
+                elif lift.why:
+                    self.warnings.append(f"actuator.{g.name}: no lift-off test ({lift.why}); a lift-off is "
+                                         f"told by the estimates alone")
 
     def _open_tones(self, scene) -> None:
         """Closed loop holds the tips self-sensing reads (bimorph groups), at a target: the tones
@@ -473,6 +485,12 @@ class Rig:
             from ..selfsense.stage import observe_stage
 
             for name, st, _, _ in self.observer_stages:
+                for seen, ctl, lift in self.lifts:
+                    if seen is st:  # before the observer: its drive ring still holds the block's drive
+                        from ..selfsense.lift import lift_stage
+
+                        stages.append(Stage(f"lift-off {name}", lift_stage, lift.stage_args(st.args, ctl),
+                                            status=None, reset=lift.reset))
                 stages.append(Stage(f"observer {name}", observe_stage, st.args, reset=st.reset))
                 # the next block's amplitudes, from this block's estimates of the group's channels
                 for cname, seen, ctl in self.controllers:

@@ -556,21 +556,7 @@ class Observer:
         self.Kc = np.zeros((n_ch if steps else 0, n_t, n_q, N_EST, 2))
         if not steps:
             return
-        loads = self.image_loads if self.frontend is not None else self.image_loads[:1]
-        fe = self.frontend
-        tones = sorted({float(x) for x in self.freqs.ravel() if x > 0.0})
-        per_volt = {fk: [] for fk in tones}
-        for load in loads:
-            images = {fk: 0.0 for fk in tones}
-            if fe is not None and tones:
-                # the drive staircase's images fold back onto the tone: about -13 % of a segment's
-                # reading, nearly all of it capacitive, so a step puts their boundary term in too
-                om = np.concatenate([fe.image_omegas(fk) for fk in tones])
-                table = dict(zip(om.tolist(), self.beam.currents(om, [_load_stiffness(load, w) for w in om])))
-                images = {fk: fe.images(fk, table.__getitem__) for fk in tones}
-            for fk in tones:
-                g = 1.0 if fe is None else fe.voltage(fk) * fe.aa(fk)
-                per_volt[fk].append(self.beam.response([fk], load)["current"][0] * g + images[fk])
+        per_volt = self.readings_per_volt()
         for c in range(n_ch):
             for k in np.flatnonzero(self.freqs[c] > 0.0):
                 fk = float(self.freqs[c, k])
@@ -581,6 +567,26 @@ class Observer:
                     kq = h @ per_volt[fk][q]
                     self.Kc[c, k, q, :, 0] = kq.real
                     self.Kc[c, k, q, :, 1] = kq.imag
+
+    def readings_per_volt(self) -> dict:
+        """Each candidate load's sensed segment currents per drive volt at each tone (A/V, complex,
+        shape (n_seg,), candidates in ``Hc``'s order): ``{freq: [per candidate]}``. The drive
+        staircase's images fold back onto the tone: about -13 % of a segment's reading, nearly
+        all of it capacitive."""
+        loads = self.image_loads if self.frontend is not None else self.image_loads[:1]
+        fe = self.frontend
+        tones = sorted({float(x) for x in self.freqs.ravel() if x > 0.0})
+        per_volt = {fk: [] for fk in tones}
+        for load in loads:
+            images = {fk: 0.0 for fk in tones}
+            if fe is not None and tones:
+                om = np.concatenate([fe.image_omegas(fk) for fk in tones])
+                table = dict(zip(om.tolist(), self.beam.currents(om, [_load_stiffness(load, w) for w in om])))
+                images = {fk: fe.images(fk, table.__getitem__) for fk in tones}
+            for fk in tones:
+                g = 1.0 if fe is None else fe.voltage(fk) * fe.aa(fk)
+                per_volt[fk].append(self.beam.response([fk], load)["current"][0] * g + images[fk])
+        return per_volt
 
     def _reset_steps(self) -> None:
         """The first difference's sums empty, laid out as the drive's lock-in's."""
