@@ -229,7 +229,7 @@ class LiftTest:
         self.state = np.zeros((n_ch, S_LAST + n_seg + n_q))
         if not self.active:
             return
-        per_volt = ob.readings_per_volt()
+        per_volt = ob.readings_per_volt
         for c in range(n_ch):
             for k in np.flatnonzero(ob.freqs[c] > 0.0):
                 for q in range(n_q):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from fractions import Fraction
 
@@ -556,7 +557,7 @@ class Observer:
         self.Kc = np.zeros((n_ch if steps else 0, n_t, n_q, N_EST, 2))
         if not steps:
             return
-        per_volt = self.readings_per_volt()
+        per_volt = self.readings_per_volt
         for c in range(n_ch):
             for k in np.flatnonzero(self.freqs[c] > 0.0):
                 fk = float(self.freqs[c, k])
@@ -568,11 +569,13 @@ class Observer:
                     self.Kc[c, k, q, :, 0] = kq.real
                     self.Kc[c, k, q, :, 1] = kq.imag
 
+    @functools.cached_property
     def readings_per_volt(self) -> dict:
         """Each candidate load's sensed segment currents per drive volt at each tone (A/V, complex,
-        shape (n_seg,), candidates in ``Hc``'s order): ``{freq: [per candidate]}``. The drive
-        staircase's images fold back onto the tone: about -13 % of a segment's reading, nearly
-        all of it capacitive."""
+        shape (n_seg,), candidates in ``Hc``'s order): ``{freq: [per candidate]}``, solved once
+        (the drive's correction and the lift-off test both read them; the tones are the build's).
+        The drive staircase's images fold back onto the tone: about -13 % of a segment's reading,
+        nearly all of it capacitive."""
         loads = self.image_loads if self.frontend is not None else self.image_loads[:1]
         fe = self.frontend
         tones = sorted({float(x) for x in self.freqs.ravel() if x > 0.0})
