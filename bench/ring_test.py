@@ -8,8 +8,10 @@ off by 10-360 fold). This bench asks each load the observer knows (the calibrate
 sets and the free tip) to explain the block: its steady currents for the drive held before the
 event (the tone through the segment admittances, with the drive's folded images, as the observer's
 design has them), plus a free level and free sines at that load's two lowest modes (the ring it
-would leave, any amplitude and phase). The load whose residual is least is the test's verdict:
-the free tip after a lift-off, a finger after a press or a landing.
+would leave, any amplitude and phase): the design of the loop's own test
+(``rtctl.selfsense.lift``), evaluated here in numpy on a drive fitted by least squares. The load
+whose residual is least is the test's verdict: the free tip after a lift-off, a finger after a
+press or a landing.
 
 Per device, tone and event it prints each load's residual (rms over the block's samples and
 segments, in sensor-noise units: the scene's noise and the ADC's quantization at the shunt), the
@@ -30,40 +32,40 @@ import tempfile
 
 import control_sweep as cs
 import numpy as np
+from control_oracle import noise_rms
 
 #: Blocks of held drive the tones' phasors are fitted over, ending with the event's block.
 DRIVE_BLOCKS = 16
-#: Lowest modes of each load whose ring is left free.
-RING_MODES = 2
 
 
-def _loads(models, group) -> dict:
-    """The loads the observer knows for ``group``, by name: its finger sets and the free tip."""
-    out = {}
-    for load in [models.finger(group), *models.other_fingers(group)]:
-        out["free" if load is None else f"finger k0 {load.k0:g} N/m"] = load
+def load_names(observer) -> list[str]:
+    """The observer's candidate loads (its finger sets, the free tip), named, in its order."""
+    return ["free" if load is None else f"finger k0 {load.k0:g} N/m" for load in observer.image_loads]
+
+
+def residuals(lift, sensed, drives, c: int, kb: int) -> np.ndarray:
+    """Each candidate's residual energy (A^2) on channel ``c``'s block ``kb``: the currents
+    ``sensed`` (rows of the channel's segments) less the candidate's steady currents for the
+    drive, less their projection on its ring columns (the lift-off test's ``ly`` and ``lq``: the
+    observer's design). The drive's phasors are fitted by least squares to ``drives`` (the
+    channel's last ``DRIVE_BLOCKS`` blocks of drive, ending with ``kb``), not read from the
+    lock-in as the test in the loop reads them."""
+    obs = lift.observer
+    block, fs, n_seg = obs.block, obs.fs, obs.n_seg
+    fr = obs.freqs[c][obs.freqs[c] > 0]
+    t = np.arange((kb - DRIVE_BLOCKS + 1) * block, (kb + 1) * block)
+    w = 2 * np.pi * fr / fs
+    cols = np.concatenate([np.cos(np.outer(t, w)), -np.sin(np.outer(t, w))], axis=1)
+    sol = np.linalg.lstsq(cols, np.asarray(drives).reshape(-1), rcond=None)[0]
+    u = sol[:fr.size] + 1j * sol[fr.size:]  # x = Re(u exp(j w t))
+    z = np.exp(1j * np.outer(t[-block:], w))
+    out = np.zeros(lift.ly.shape[2])
+    for q in range(out.size):
+        for j in range(n_seg):
+            y = lift.ly[c, :fr.size, q, j, 0] + 1j * lift.ly[c, :fr.size, q, j, 1]
+            r = sensed[j] - np.real(z @ (y * u))
+            out[q] += r @ r - np.sum((lift.lq[q].T @ r) ** 2)
     return out
-
-
-def _ring_basis(beam, load, fs: float, block: int) -> np.ndarray:
-    """Orthonormal columns over one block: a level, and cos and sin at ``load``'s lowest modes."""
-    modes = beam.natural_frequencies(RING_MODES) if load is None else beam.loaded_frequencies(load, RING_MODES)
-    t = np.arange(block) / fs
-    cols = [np.ones(block)]
-    for f in modes:
-        cols += [np.cos(2 * np.pi * f * t), np.sin(2 * np.pi * f * t)]
-    q, _ = np.linalg.qr(np.stack(cols, axis=1))
-    return q
-
-
-def _steady_currents(beam, fe, load, freqs) -> np.ndarray:
-    """Sensed current per drive volt at each tone, per segment (complex, shape (n_tones, n_seg))."""
-
-    def y(om):
-        k = 0.0 if load is None else load.dynamic_stiffness(om)
-        return beam.currents(np.array([om]), k)[0]
-
-    return np.array([fe.voltage(f) * fe.aa(f) * y(2 * np.pi * f) + fe.images(f, y) for f in freqs])
 
 
 def device_rows(device: dict, extra=()) -> list[dict]:
@@ -74,21 +76,18 @@ def device_rows(device: dict, extra=()) -> list[dict]:
     from rtctl.engine.rig import build
     from rtctl.engine.run import run
     from rtctl.events import block_of
+    from rtctl.selfsense.lift import LiftTest
 
     s = scene.load(cs.SCENE, [*cs.overrides(device), *extra])
     with tempfile.TemporaryDirectory() as d:
         s, _ = auto(s, d, run, say=None)
         rig = build(s)  # reads the calibration file
-    g = s.actuator[0]
     fs, block = s.timing.fs, s.timing.block
-    beam, fe = rig.models.observer_beam(g), rig.models.frontend(g, fs)
-    loads = _loads(rig.models, g)
-    basis = {name: _ring_basis(beam, load, fs, block) for name, load in loads.items()}
-    freqs = [cs._freqs(f, b) for f, b, _ in cs.TONES]
-    steady = {name: [_steady_currents(beam, fe, load, fr) for fr in freqs] for name, load in loads.items()}
-    sense = g.sense
-    noise = np.hypot(sense.noise, 2.0 * sense.full_scale / 2.0 ** sense.bits / np.sqrt(12.0)) / sense.shunt
-    n_seg = beam.n_seg
+    obs = rig.observer_stages[0][1].observer
+    lift = LiftTest(obs)
+    names = load_names(obs)
+    noise = noise_rms(s)
+    n_seg = obs.n_seg
     ev_blocks = [block_of(at, fs, block) for at, _ in cs.EVENTS]
     # the sensed block read in advance k holds the currents of block k - latency
     reads = {kb + rig.latency + d: (i, d) for i, kb in enumerate(ev_blocks) for d in (-1, 0)}
@@ -103,22 +102,9 @@ def device_rows(device: dict, extra=()) -> list[dict]:
         i, d = reads[k]
         kb = k - rig.latency  # the block whose currents were read
         order = [(kb - m) % DRIVE_BLOCKS for m in range(DRIVE_BLOCKS - 1, -1, -1)]
-        t = np.arange((kb - DRIVE_BLOCKS + 1) * block, (kb + 1) * block)
-        tb = t[-block:]
-        for ch, fr in enumerate(freqs):
-            w = 2 * np.pi * np.asarray(fr) / fs
-            cols = np.concatenate([np.cos(np.outer(t, w)), -np.sin(np.outer(t, w))], axis=1)
-            sol = np.linalg.lstsq(cols, drives[order, ch].reshape(-1), rcond=None)[0]
-            u = sol[:len(fr)] + 1j * sol[len(fr):]  # x = Re(u exp(j w t))
-            z = np.exp(1j * np.outer(tb, w))
-            sensed = rig.sensed[ch * n_seg:(ch + 1) * n_seg]
-            rms = {}
-            for name, q in basis.items():
-                e = 0.0
-                for sg in range(n_seg):
-                    r = sensed[sg] - np.real(z @ (steady[name][ch][:, sg] * u))
-                    e += float(r @ r - np.sum((q.T @ r) ** 2))
-                rms[name] = float(np.sqrt(max(e, 0.0) / (n_seg * block)) / noise)
+        for ch in range(len(cs.TONES)):
+            e = residuals(lift, rig.sensed[ch * n_seg:(ch + 1) * n_seg], drives[order, ch], ch, kb)
+            rms = {name: float(np.sqrt(max(x, 0.0) / (n_seg * block)) / noise) for name, x in zip(names, e)}
             finger = min(v for n, v in rms.items() if n != "free")
             rows.append({"device": cs.label(device), "freq_hz": cs.TONES[ch][0], "beat_hz": cs.TONES[ch][1],
                          "target_um": cs.TONES[ch][2], "event": cs.SEGMENTS[i + 1],

@@ -15,6 +15,8 @@ from rtctl.events import block_of
 from rtctl.selfsense.lift import S_FLAG, S_LAST
 
 sweep = load("control_sweep")
+load("control_oracle")  # the bench imports it by name
+ring = load("ring_test")
 
 
 @pytest.fixture(scope="module")
@@ -54,34 +56,24 @@ def test_a_lift_off_is_flagged_from_its_first_block_read_and_nothing_else_is(run
     watched = [j for j in range(ctl.state.shape[1])
                if ctl.index[OBS_CH, j] in flags[first] and ctl.state[JNOISE, j] >= 0.0]
     assert watched and all(released[j] == 1.0 for j in watched)
+    # only channels with a watched tone are tested (a flag elsewhere would be read by no one)
+    has_rule = {int(ctl.index[OBS_CH, j]) for j in range(ctl.state.shape[1]) if ctl.state[JNOISE, j] >= 0.0}
+    assert has_rule and set(np.flatnonzero(lift.free >= 0)) == has_rule
+    assert set().union(*flags.values()) <= has_rule
     assert np.all(ctl.state[NREL] <= 1)  # none released twice (the beat pairs by their estimates since)
 
 
 def test_the_residuals_are_the_currents_less_each_candidate_s_steady_currents_and_ring(run):
-    """Recomputed for every flagged channel from the block's drive (least squares at the tones
-    over the 16 blocks it was held), the candidates' readings per volt and ring columns: within
-    1e-6 of the kernel's (the lock-in's window phasors of a held drive are its phasors)."""
+    """Recomputed in numpy for every flagged channel (bench/ring_test.py) from the block's drive
+    fitted by least squares at the tones over the 16 blocks it was held: within 1e-6 of the
+    kernel's, whose drive is the lock-in's window phasors (a held drive's phasors)."""
     rig, lift, _, _, first, flags, drives, (sensed, state, _) = run
-    obs = lift.observer
-    n_seg, block, fs = obs.n_seg, obs.block, obs.fs
+    n_seg, blocks = lift.observer.n_seg, ring.DRIVE_BLOCKS
     kb = first - rig.latency  # the block the currents answer
-    t = np.arange((kb - 15) * block, (kb + 1) * block)
     for c in flags[first]:
-        fr = obs.freqs[c][obs.freqs[c] > 0]
-        w = 2 * np.pi * fr / fs
-        cols = np.concatenate([np.cos(np.outer(t, w)), -np.sin(np.outer(t, w))], axis=1)
-        x = drives[kb - 15:kb + 1, c].reshape(-1)
-        sol = np.linalg.lstsq(cols, x, rcond=None)[0]
-        u = sol[:fr.size] + 1j * sol[fr.size:]
-        assert np.allclose(cols @ sol, x, atol=1e-9 * np.abs(x).max())  # the drive was held
-        z = np.exp(1j * np.outer(t[-block:], w))
-        for q in range(lift.ly.shape[2]):
-            e = 0.0
-            for j in range(n_seg):
-                y = lift.ly[c, :fr.size, q, j, 0] + 1j * lift.ly[c, :fr.size, q, j, 1]
-                r = sensed[c * n_seg + j] - np.real(z @ (y * u))
-                e += r @ r - np.sum((lift.lq[q].T @ r) ** 2)
-            assert state[c, S_LAST + n_seg + q] == pytest.approx(e, rel=1e-6)
+        held = drives[kb - blocks + 1:kb + 1, c]
+        expect = ring.residuals(lift, sensed[c * n_seg:(c + 1) * n_seg], held, c, kb)
+        np.testing.assert_allclose(state[c, S_LAST + n_seg:], expect, rtol=1e-6)
 
 
 def test_a_scene_that_needs_no_test_compiles_none():

@@ -8,6 +8,7 @@ import pytest
 from bench_module import load
 
 sweep = load("control_sweep")
+load("control_oracle")  # the bench imports it by name
 ring = load("ring_test")
 
 

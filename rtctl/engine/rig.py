@@ -303,7 +303,7 @@ class Rig:
                 # a lift-off told from the first block of currents read after it, for the release
                 from ..selfsense.lift import LiftTest
 
-                lift = LiftTest(obs)
+                lift = LiftTest(obs, np.unique(c_[release >= 0.0]))
                 if lift.active:
                     self.lifts.append((st, ctl, lift))
                 elif lift.why:

@@ -30,7 +30,6 @@ import numpy as np
 from .._numba import kernel
 from ..dsp import _kernels as _dk
 from ..errors import ModelError
-from . import _kernels as _ok
 
 #: The free tip's residual must be under every finger's by this factor (rms) for a lift-off.
 LIFT_RATIO = 1.3
@@ -57,7 +56,7 @@ _XR, _XI = _dk.X_R, _dk.X_I
 
 
 @kernel
-def lift_stage(u_ref, u_acc, pf_g, scale, pick, contact, ly, lq, lz, lr, state, delay, head, sensed, c_index,
+def lift_stage(u_ref, u_acc, pf_g, scale, pick, free, ly, lq, lz, lr, state, delay, head, sensed, c_index,
                c_state, lifted_row, c0):
     """Test each channel's block read for a lift-off and write the flag of every controlled tone.
 
@@ -67,8 +66,10 @@ def lift_stage(u_ref, u_acc, pf_g, scale, pick, contact, ly, lq, lz, lr, state, 
 
     Parameters
     ----------
-    u_ref, u_acc, pf_g, scale, pick, contact
+    u_ref, u_acc, pf_g, scale, pick
         The observer's (``Observer.args``).
+    free : ndarray of int64, shape (n_ch,)
+        Each channel's candidate without a finger, where it is tested (-1: not tested).
     ly : ndarray, shape (n_ch, n_t, n_q, n_seg, 2)
         Each candidate's sensed current per drive volt at each tone and segment (real, imaginary).
     lq : ndarray, shape (n_q, block, n_cols)
@@ -90,6 +91,9 @@ def lift_stage(u_ref, u_acc, pf_g, scale, pick, contact, ly, lq, lz, lr, state, 
     n = sensed.shape[1]
     drive = delay[head[0]]
     for c in range(n_ch):
+        state[c, S_FLAG] = 0.0
+        if free[c] < 0:
+            continue
         d2 = 0.0
         for j in range(n_seg):
             row = c * n_seg + j
@@ -118,11 +122,8 @@ def lift_stage(u_ref, u_acc, pf_g, scale, pick, contact, ly, lq, lz, lr, state, 
             state[c, S_LAST + j] = sensed[row, n - 1]
         before = state[c, S_PREV]
         state[c, S_PREV] = d2
-        state[c, S_FLAG] = 0.0
-        free = -1
-        for k in range(n_t):
-            free = max(free, int(contact[c, k, _ok.C_FREE]))
-        if free < 0 or pick[c] == free or not (before > 0.0 and d2 > LIFT_JUMP * before and d2 < math.inf):
+        f = free[c]
+        if pick[c] == f or not (before > 0.0 and d2 > LIFT_JUMP * before and d2 < math.inf):
             continue
         if not _drive_held(u_ref, u_acc, pf_g, scale, c, n_t, drive, lz):
             continue
@@ -131,7 +132,7 @@ def lift_stage(u_ref, u_acc, pf_g, scale, pick, contact, ly, lq, lz, lr, state, 
             state[c, e + q] = _residual(ly, lq, lz, lr, sensed, c, q)
         lifted = True
         for q in range(n_q):
-            if q != free and not (state[c, e + free] * LIFT_RATIO * LIFT_RATIO < state[c, e + q]):
+            if q != f and not (state[c, e + f] * LIFT_RATIO * LIFT_RATIO < state[c, e + q]):
                 lifted = False
         if lifted:
             state[c, S_FLAG] = 1.0
@@ -203,6 +204,9 @@ class LiftTest:
     ----------
     observer : Observer
         Its candidates (one without a finger, one or more with), beam, front end and tones.
+    channels : array_like of int, optional
+        The observer's channels to test (default all): those with a tone the release rule
+        watches (the others' flags would be read by no one).
 
     Attributes
     ----------
@@ -213,7 +217,7 @@ class LiftTest:
     why : str
     """
 
-    def __init__(self, observer):
+    def __init__(self, observer, channels=None):
         ob = observer
         loads = ob.image_loads if ob.frontend is not None else ob.image_loads[:1]
         n_ch, n_t, n_seg, block = ob.n_channels, ob.n_tones, ob.n_seg, ob.block
@@ -226,6 +230,10 @@ class LiftTest:
         self.lq = np.zeros((n_q, block, n_cols))
         self.lz = np.zeros((n_t, block, 2))
         self.lr = np.zeros(block)
+        free = [q for q, x in enumerate(loads) if x is None]
+        self.free = np.full(n_ch, -1, dtype=np.int64)
+        self.free[np.arange(n_ch) if channels is None else np.asarray(channels, dtype=np.int64)] = \
+            free[0] if self.active else -1
         self.state = np.zeros((n_ch, S_LAST + n_seg + n_q))
         if not self.active:
             return
@@ -257,6 +265,6 @@ class LiftTest:
 
         a = observer_args
         return dict(u_ref=a["u_ref"], u_acc=a["u_acc"], pf_g=a["pf_g"], scale=a["scale"], pick=a["pick"],
-                    contact=a["contact"], ly=self.ly, lq=self.lq, lz=self.lz, lr=self.lr, state=self.state,
+                    free=self.free, ly=self.ly, lq=self.lq, lz=self.lz, lr=self.lr, state=self.state,
                     delay=a["delay"], head=a["head"], sensed=a["sensed"], c_index=controller.index,
                     c_state=controller.state, lifted_row=LIFTED, c0=int(c0))
