@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 
 from rtctl.control import AmplitudeController, amplitude_control
-from rtctl.control._kernels import JNOISE
 from rtctl.control.amplitude import RELEASE_WINDOW, RELEASE_Z
 from rtctl.engine.report import fit_window
 from rtctl.engine.rig import Rig
@@ -68,8 +67,8 @@ class PerChannelRig(Rig):
     def _stages(self) -> list:
         """The rig's stages with a control stage per channel right after its group's observer (the
         rig's own list matches controllers to whole-group stages only, so it has none), and before
-        the observer a lift-off test per controller with a released tone, each testing its channel
-        (its own state) and flagging its channel's tones."""
+        the observer a lift-off test per controller, each testing its channel (its own state) and
+        flagging its channel's tones."""
         from rtctl.selfsense.lift import LiftTest, lift_stage
 
         stages = super()._stages()
@@ -77,12 +76,12 @@ class PerChannelRig(Rig):
             at = [s.name for s in stages].index(f"observer {name}")
             lifts = []
             for cname, seen, ctl in self.controllers:
-                if seen.stage is not st or not np.any(ctl.state[JNOISE] >= 0.0):
+                if seen.stage is not st:
                     continue
                 lift = LiftTest(st.observer, [seen.observer.first])
                 if lift.active:
                     args = lift.stage_args(st.args, ctl, seen.observer.first)
-                    lifts.append(Stage(f"lift-off {cname}", lift_stage, args, status=None, reset=lift.reset))
+                    lifts.append(Stage(f"contact {cname}", lift_stage, args, status=None, reset=lift.reset))
             stages[at:at] = lifts
             at = [s.name for s in stages].index(f"observer {name}") + 1
             mine = [Stage(f"control {cname}", amplitude_control,

@@ -98,7 +98,7 @@ class Rig:
         self.observer_stages = []
         # what is observed, per group: (name, ObserverStage, group, first channel); controllers,
         # one per observed group with a controlled tone: (group name, its ObserverStage, controller);
-        # lift-off tests, one per controlled group with a released tone: (ObserverStage, controller,
+        # lift-off and landing tests, one per controlled group: (ObserverStage, controller,
         # LiftTest)
         self.observers, self.controllers, self.lifts = [], [], []
         #: what the build found that the run's summary should say (a target under the noise floor)
@@ -299,16 +299,16 @@ class Rig:
             self.controllers.append((name, st, ctl))
             for j, b in enumerate(bank):
                 self.controlled[int(b)] = (ctl, j)
-            if np.any(release >= 0.0):
-                # a lift-off told from the first block of currents read after it, for the release
-                from ..selfsense.lift import LiftTest
+            # a lift-off (for the release rule) or a landing (for the observer's images) told
+            # from the first block of currents read after it
+            from ..selfsense.lift import LiftTest
 
-                lift = LiftTest(obs, np.unique(c_[release >= 0.0]))
-                if lift.active:
-                    self.lifts.append((st, ctl, lift))
-                elif lift.why:
-                    self.warnings.append(f"actuator.{g.name}: no lift-off test ({lift.why}); a lift-off is "
-                                         f"told by the estimates alone")
+            lift = LiftTest(obs, np.unique(c_))
+            if lift.active:
+                self.lifts.append((st, ctl, lift))
+            elif lift.why:
+                self.warnings.append(f"actuator.{g.name}: no lift-off test ({lift.why}); a lift-off is "
+                                     f"told by the estimates alone, a landing by the observer's votes")
 
     def _open_tones(self, scene) -> None:
         """Closed loop holds the tips self-sensing reads (bimorph groups), at a target: the tones
@@ -489,7 +489,7 @@ class Rig:
                     if seen is st:  # before the observer: its drive ring still holds the block's drive
                         from ..selfsense.lift import lift_stage
 
-                        stages.append(Stage(f"lift-off {name}", lift_stage, lift.stage_args(st.args, ctl),
+                        stages.append(Stage(f"contact {name}", lift_stage, lift.stage_args(st.args, ctl),
                                             status=None, reset=lift.reset))
                 stages.append(Stage(f"observer {name}", observe_stage, st.args, reset=st.reset))
                 # the next block's amplitudes, from this block's estimates of the group's channels

@@ -361,12 +361,18 @@ def _pick_load(u_acc, i_acc, H, Hc, pick, resid, contact, lag, scale):
         if best != cur and resid[c, 0, best] < SWITCH * resid[c, 0, cur]:
             if best == free:
                 resid[c, 2, 0] = cur  # the finger's candidate to come back to
-            for k in range(n_t):
-                for e in range(H.shape[2]):
-                    for j in range(n_seg + 1):
-                        H[c, k, e, j, 0] = Hc[c, k, best, e, j, 0]
-                        H[c, k, e, j, 1] = Hc[c, k, best, e, j, 1]
-            pick[c] = best
+            use_load(H, Hc, pick, c, best)
+
+
+@kernel
+def use_load(H, Hc, pick, c, q):
+    """Channel ``c`` reads through candidate ``q`` from now on: its matrices copied into ``H``."""
+    for k in range(H.shape[1]):
+        for e in range(H.shape[2]):
+            for j in range(H.shape[3]):
+                H[c, k, e, j, 0] = Hc[c, k, q, e, j, 0]
+                H[c, k, e, j, 1] = Hc[c, k, q, e, j, 1]
+    pick[c] = q
 
 
 @kernel

@@ -1,4 +1,4 @@
-"""A finger that lifts off, told from the first block of currents read after it.
+"""A finger that lifts off or lands, told from the first block of currents read after it.
 
 The observer reads a tone over a window of whole periods (25 ms at 40 Hz), so a lift-off shows in
 its estimates only a window's share at a time, and a loop that waits for them lets the tip swing
@@ -19,6 +19,13 @@ Measured (bench/ring_test.py, the closed-loop sweep's 33 devices, the first bloc
 finger event, every tone under 500 Hz and the beat pairs): the free tip explained the block best
 after every lift-off, by 1.52 times (rms) or more, and a finger after every press (2.23) and
 landing (2.29).
+
+A landing is told alike where the channel reads through the free tip's candidate (after a
+lift-off, on a beam whose drive's images tell the loads apart): a finger better than the free tip
+by the same ratio puts the channel on that finger's candidate at once, where the observer's own
+votes took half a window and read the loaded beam through the free tip's images meanwhile (15-20 %
+high on a 20 mm beam). Its gates differ (:data:`LAND_JUMP`, :data:`LAND_HELD`): a landing damps
+the beam, so the currents' first difference barely moves.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ import numpy as np
 from .._numba import kernel
 from ..dsp import _kernels as _dk
 from ..errors import ModelError
+from . import _kernels as _ldk
 
 #: The free tip's residual must be under every finger's by this factor (rms) for a lift-off.
 LIFT_RATIO = 1.3
@@ -43,22 +51,43 @@ LIFT_JUMP = 25.0
 #: ... and only where the window's drive phasors rebuild the block's drive within this share
 #: (rms): the drive held over the window, so that the candidates' steady currents are the block's.
 LIFT_HELD = 0.01
+#: ... and for a landing within this share: the free tip's residual would jump at any change of
+#: the drive, whose transient no candidate's steady currents hold (a correction of +0.46 % at
+#: 250 Hz, ramped over one block, raised it 140 times; the finger's candidates explained that
+#: block better). A window after each change of the drive goes untested (its phasors hold the old
+#: drive), where the observer's votes still tell a landing.
+LAND_HELD = 1e-4
 #: Lowest modes of each candidate whose ring is left free.
 RING_MODES = 2
-#: Columns of ``state`` per channel: the flag of this block, the first difference's energy of the
-#: block before, then the last sample of each segment, then each candidate's residual energy of
-#: the last test (A^2 over the block; what the flag was decided on).
-S_FLAG, S_PREV = 0, 1
-S_LAST = 2
+#: A landing is looked for only where the free tip's residual (the candidate in use) is this many
+#: times its level on the blocks before (``S_FREE``: their least, rising towards each later one
+#: by ``LAND_RATE`` per block): the finger damps the beam, whose currents then change by 2-3 times
+#: at most (their first difference's energy, no gate for a lift-off's), and the free tip no
+#: longer explains them (its residual 4-7 times its level over the first blocks under a finger 3x
+#: softer than the model's, 170-600 times under a stiffer one). The verdict alone, on every block,
+#: would not do: on a device off its model the calibrated free tip may leave 2-3 times the noise
+#: on a steady lifted block where a finger's candidate leaves less (250 Hz on a 12 mm beam), and
+#: the observer then read the lifted beam through a finger's images, 2.9 % low.
+LAND_JUMP = 3.0
+LAND_RATE = 1.0 / 16.0
+#: Columns of ``state`` per channel: the flag of this block (1: a lift-off, -1: a landing), the
+#: first difference's energy of the block before, the free tip's residual's level (``LAND_JUMP``;
+#: 0: none, the free tip not in use or the drive not held), then the last sample of each segment,
+#: then each candidate's residual energy of the last test (A^2 over the block; what the flag was
+#: decided on).
+S_FLAG, S_PREV, S_FREE = 0, 1, 2
+S_LAST = 3
 
 _ZR, _ZI, _WR, _WI = _dk.ZR, _dk.ZI, _dk.WR, _dk.WI
 _XR, _XI = _dk.X_R, _dk.X_I
 
 
 @kernel
-def lift_stage(u_ref, u_acc, pf_g, scale, pick, free, ly, lq, lz, lr, state, delay, head, sensed, c_index,
-               c_state, lifted_row, c0):
-    """Test each channel's block read for a lift-off and write the flag of every controlled tone.
+def lift_stage(u_ref, u_acc, pf_g, scale, pick, H, Hc, resid, free, ly, lq, lz, lr, state, delay, head, sensed,
+               c_index, c_state, lifted_row, c0):
+    """Test each channel's block read for a lift-off (and write the flag of every controlled
+    tone) or, where it reads through the free tip's candidate, a landing (and put it on the
+    finger's).
 
     Runs before the group's observer stage: ``u_ref`` holds the drive's references at the first
     sample of this block, ``u_acc`` the drive's window sums of the block before, ``pick`` the
@@ -66,8 +95,8 @@ def lift_stage(u_ref, u_acc, pf_g, scale, pick, free, ly, lq, lz, lr, state, del
 
     Parameters
     ----------
-    u_ref, u_acc, pf_g, scale, pick
-        The observer's (``Observer.args``).
+    u_ref, u_acc, pf_g, scale, pick, H, Hc, resid
+        The observer's (``Observer.args``); a landing writes ``pick``, ``H`` and ``resid``.
     free : ndarray of int64, shape (n_ch,)
         Each channel's candidate without a finger, where it is tested (-1: not tested).
     ly : ndarray, shape (n_ch, n_t, n_q, n_seg, 2)
@@ -123,28 +152,47 @@ def lift_stage(u_ref, u_acc, pf_g, scale, pick, free, ly, lq, lz, lr, state, del
         before = state[c, S_PREV]
         state[c, S_PREV] = d2
         f = free[c]
-        if pick[c] == f or not (before > 0.0 and d2 > LIFT_JUMP * before and d2 < math.inf):
+        level = state[c, S_FREE]
+        state[c, S_FREE] = 0.0
+        if pick[c] != f and not (before > 0.0 and d2 > LIFT_JUMP * before and d2 < math.inf):
             continue
-        if not _drive_held(u_ref, u_acc, pf_g, scale, c, n_t, drive, lz):
+        off = _drive_off(u_ref, u_acc, pf_g, scale, c, n_t, drive, lz)
+        if not off <= (LIFT_HELD if pick[c] != f else LAND_HELD):
             continue
         e = S_LAST + n_seg
+        if pick[c] == f:  # a landing, only where the free tip no longer explains the block
+            r = _residual(ly, lq, lz, lr, sensed, c, f)
+            if not (r < math.inf):
+                continue
+            state[c, S_FREE] = r if not (0.0 < level < r) else level + LAND_RATE * (r - level)
+            if not (level > 0.0 and r > LAND_JUMP * level):
+                continue
+        best = -1  # the finger that explains the block best
         for q in range(n_q):
             state[c, e + q] = _residual(ly, lq, lz, lr, sensed, c, q)
-        lifted = True
-        for q in range(n_q):
-            if q != f and not (state[c, e + f] * LIFT_RATIO * LIFT_RATIO < state[c, e + q]):
-                lifted = False
-        if lifted:
-            state[c, S_FLAG] = 1.0
+            if q != f and (best < 0 or state[c, e + q] < state[c, e + best]):
+                best = q
+        ratio2 = LIFT_RATIO * LIFT_RATIO
+        if pick[c] != f:
+            if state[c, e + f] * ratio2 < state[c, e + best]:
+                state[c, S_FLAG] = 1.0
+        elif state[c, e + best] * ratio2 < state[c, e + f]:
+            # a landing: the observer reads through that finger's candidate from this block on,
+            # where its votes took half a window (the free tip's images on a loaded beam read its
+            # tip 20 % high), and the votes must go against it as long to take it back
+            _ldk.use_load(H, Hc, pick, c, best)
+            for q in range(n_q):
+                resid[c, 0, q] = 1.0 if q == f else 0.0
+            state[c, S_FLAG] = -1.0
     for i in range(c_state.shape[1]):
-        c_state[lifted_row, i] = state[c0 + c_index[0, i], S_FLAG]
+        c_state[lifted_row, i] = max(state[c0 + c_index[0, i], S_FLAG], 0.0)
 
 
 @kernel
-def _drive_held(u_ref, u_acc, pf_g, scale, c, n_t, drive, lz):
+def _drive_off(u_ref, u_acc, pf_g, scale, c, n_t, drive, lz):
     """Write each tone's drive on the block's samples into ``lz`` as phasors (``x[m] = Re(D
     z[m])``, the drive as sent: the low-pass's response taken out of the window's ``D``) and
-    say whether their sum is the block's drive within ``LIFT_HELD``."""
+    return how far their sum is from the block's drive (rms, relative; inf: no drive)."""
     n = drive.shape[1]
     sc = scale[c]
     for k in range(n_t):
@@ -170,7 +218,7 @@ def _drive_held(u_ref, u_acc, pf_g, scale, c, n_t, drive, lz):
         v = drive[c, m]
         e += (v - x) * (v - x)
         ed += v * v
-    return ed > 0.0 and e <= LIFT_HELD * LIFT_HELD * ed
+    return math.sqrt(e / ed) if ed > 0.0 else math.inf
 
 
 @kernel
@@ -205,8 +253,8 @@ class LiftTest:
     observer : Observer
         Its candidates (one without a finger, one or more with), beam, front end and tones.
     channels : array_like of int, optional
-        The observer's channels to test (default all): those with a tone the release rule
-        watches (the others' flags would be read by no one).
+        The observer's channels to test (default all): those with a controlled tone (a lift-off's
+        flag is read where a tone has the release rule; a landing is told on every channel).
 
     Attributes
     ----------
@@ -265,6 +313,6 @@ class LiftTest:
 
         a = observer_args
         return dict(u_ref=a["u_ref"], u_acc=a["u_acc"], pf_g=a["pf_g"], scale=a["scale"], pick=a["pick"],
-                    free=self.free, ly=self.ly, lq=self.lq, lz=self.lz, lr=self.lr, state=self.state,
-                    delay=a["delay"], head=a["head"], sensed=a["sensed"], c_index=controller.index,
-                    c_state=controller.state, lifted_row=LIFTED, c0=int(c0))
+                    H=a["H"], Hc=a["Hc"], resid=a["resid"], free=self.free, ly=self.ly, lq=self.lq, lz=self.lz,
+                    lr=self.lr, state=self.state, delay=a["delay"], head=a["head"], sensed=a["sensed"],
+                    c_index=controller.index, c_state=controller.state, lifted_row=LIFTED, c0=int(c0))
