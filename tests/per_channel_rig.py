@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from rtctl.control import AmplitudeController, amplitude_control
+from rtctl.control._kernels import JNOISE
 from rtctl.control.amplitude import RELEASE_WINDOW, RELEASE_Z
 from rtctl.engine.report import fit_window
 from rtctl.engine.rig import Rig
@@ -78,9 +79,10 @@ class PerChannelRig(Rig):
             for cname, seen, ctl in self.controllers:
                 if seen.stage is not st:
                     continue
-                lift = LiftTest(st.observer, [seen.observer.first])
+                first = seen.observer.first
+                lift = LiftTest(st.observer, [first], [first] if np.any(ctl.state[JNOISE] >= 0.0) else [])
                 if lift.active:
-                    args = lift.stage_args(st.args, ctl, seen.observer.first)
+                    args = lift.stage_args(st.args, ctl, first)
                     lifts.append(Stage(f"contact {cname}", lift_stage, args, status=None, reset=lift.reset))
             stages[at:at] = lifts
             at = [s.name for s in stages].index(f"observer {name}") + 1

@@ -64,9 +64,12 @@ def test_a_lift_off_is_flagged_from_its_first_block_read_and_nothing_else_is(run
     watched = [j for j in range(ctl.state.shape[1])
                if ctl.index[OBS_CH, j] in flags[first] and ctl.state[JNOISE, j] >= 0.0]
     assert watched and all(released[j] == 1.0 for j in watched)
-    # every controlled channel is tested (for a landing; a lift-off flag is read where a tone
-    # has the release rule)
+    # every controlled channel is tested for a landing, and for a lift-off those with a watched
+    # tone (elsewhere the flag would be read by no one)
     assert set(np.flatnonzero(lift.free >= 0)) == set(ctl.index[OBS_CH].tolist())
+    has_rule = {int(ctl.index[OBS_CH, j]) for j in range(ctl.state.shape[1]) if ctl.state[JNOISE, j] >= 0.0}
+    assert has_rule and set(np.flatnonzero(lift.watch)) == has_rule
+    assert set().union(*flags.values()) <= has_rule
     assert np.all(ctl.state[NREL] <= 1)  # none released twice (the beat pairs by their estimates since)
 
 
@@ -112,13 +115,14 @@ def test_the_residuals_are_the_currents_less_each_candidate_s_steady_currents_an
 
 def test_a_scene_that_needs_no_test_compiles_none():
     """Open loop: no lift-off stage. Closed loop on tones the release rule does not watch
-    (windows under 8 ms): the stage, for a landing, and no tone's release flag set by it."""
+    (windows under 8 ms): the stage, for a landing only."""
     open_loop = build(scene.load(sweep.SCENE, [*sweep.overrides({}, calibrated=False), "control.mode=open"]))
     assert not open_loop.lifts and not any(s.name.startswith("contact") for s in open_loop.stages)
     high = ((1000, 0, 4.4), (500, 0, 10.5))
     rig = build(scene.load(sweep.SCENE, sweep.overrides({}, high, calibrated=False)))
     (_, ctl, lift), = rig.lifts
     assert np.all(ctl.state[JNOISE] < 0.0) and set(np.flatnonzero(lift.free >= 0)) == {0, 1}
+    assert not lift.watch.any()  # (no lift-off looked for: no tone has the release rule)
 
 
 def test_a_candidate_without_modes_leaves_the_test_out_and_says_so(monkeypatch):
@@ -159,7 +163,7 @@ def _synthetic(n_q=2, free=1, block=16):
     Hc = np.stack([np.full((1, 1, 2, 2, 2), q + 1.0) for q in range(n_q)], axis=2)  # (c, k, q, e, j, 2)
     drive = np.cos(th * m)[None]
     args = dict(u_ref=u_ref, u_acc=u_acc, pf_g=np.array([[[1.0, 0.0]]]), scale=np.ones(1),
-                pick=np.array([free]), H=H, Hc=Hc, resid=np.zeros((1, 3, n_q)), free=np.array([free]), ly=ly,
+                pick=np.array([free]), H=H, Hc=Hc, resid=np.zeros((1, 3, n_q)), free=np.array([free]), watch=np.ones(1, dtype=np.int64), ly=ly,
                 lq=lq, lz=np.zeros((1, block, 2)), lr=np.zeros(block),
                 state=np.zeros((1, S_LAST + 1 + n_q)), delay=drive[None], head=np.zeros(1, dtype=np.int64),
                 c_index=np.zeros((5, 1), dtype=np.int64), c_state=np.zeros((90, 1)), lifted_row=0, c0=0)

@@ -303,7 +303,7 @@ class Rig:
             # from the first block of currents read after it
             from ..selfsense.lift import LiftTest
 
-            lift = LiftTest(obs, np.unique(c_))
+            lift = LiftTest(obs, np.unique(c_), np.unique(c_[release >= 0.0]))
             if lift.active:
                 self.lifts.append((st, ctl, lift))
             elif lift.why:

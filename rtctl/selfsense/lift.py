@@ -83,8 +83,8 @@ _XR, _XI = _dk.X_R, _dk.X_I
 
 
 @kernel
-def lift_stage(u_ref, u_acc, pf_g, scale, pick, H, Hc, resid, free, ly, lq, lz, lr, state, delay, head, sensed,
-               c_index, c_state, lifted_row, c0):
+def lift_stage(u_ref, u_acc, pf_g, scale, pick, H, Hc, resid, free, watch, ly, lq, lz, lr, state, delay, head,
+               sensed, c_index, c_state, lifted_row, c0):
     """Test each channel's block read for a lift-off (and write the flag of every controlled
     tone) or, where it reads through the free tip's candidate, a landing (and put it on the
     finger's).
@@ -99,6 +99,9 @@ def lift_stage(u_ref, u_acc, pf_g, scale, pick, H, Hc, resid, free, ly, lq, lz, 
         The observer's (``Observer.args``); a landing writes ``pick``, ``H`` and ``resid``.
     free : ndarray of int64, shape (n_ch,)
         Each channel's candidate without a finger, where it is tested (-1: not tested).
+    watch : ndarray of int64, shape (n_ch,)
+        1 where a lift-off is looked for (a tone of the channel has the release rule), 0 where
+        only a landing is.
     ly : ndarray, shape (n_ch, n_t, n_q, n_seg, 2)
         Each candidate's sensed current per drive volt at each tone and segment (real, imaginary).
     lq : ndarray, shape (n_q, block, n_cols)
@@ -121,7 +124,15 @@ def lift_stage(u_ref, u_acc, pf_g, scale, pick, H, Hc, resid, free, ly, lq, lz, 
     drive = delay[head[0]]
     for c in range(n_ch):
         state[c, S_FLAG] = 0.0
-        if free[c] < 0:
+        f = free[c]
+        if f < 0:
+            continue
+        if pick[c] == f:  # (the lift-off's gate, unused while the free tip is in use, starts anew after)
+            state[c, S_PREV] = 0.0
+            _landing(u_ref, u_acc, pf_g, scale, pick, H, Hc, resid, ly, lq, lz, lr, state, drive, sensed, c, f)
+            continue
+        state[c, S_FREE] = 0.0  # (and the landing's level, once the free tip is in use again)
+        if watch[c] == 0:
             continue
         d2 = 0.0
         for j in range(n_seg):
@@ -151,41 +162,53 @@ def lift_stage(u_ref, u_acc, pf_g, scale, pick, H, Hc, resid, free, ly, lq, lz, 
             state[c, S_LAST + j] = sensed[row, n - 1]
         before = state[c, S_PREV]
         state[c, S_PREV] = d2
-        f = free[c]
-        level = state[c, S_FREE]
-        state[c, S_FREE] = 0.0
-        if pick[c] != f and not (before > 0.0 and d2 > LIFT_JUMP * before and d2 < math.inf):
+        if not (before > 0.0 and d2 > LIFT_JUMP * before and d2 < math.inf):
             continue
-        off = _drive_off(u_ref, u_acc, pf_g, scale, c, n_t, drive, lz)
-        if not off <= (LIFT_HELD if pick[c] != f else LAND_HELD):
+        if not _drive_off(u_ref, u_acc, pf_g, scale, c, n_t, drive, lz) <= LIFT_HELD:
             continue
         e = S_LAST + n_seg
-        if pick[c] == f:  # a landing, only where the free tip no longer explains the block
-            r = _residual(ly, lq, lz, lr, sensed, c, f)
-            if not (r < math.inf):
-                continue
-            state[c, S_FREE] = r if not (0.0 < level < r) else level + LAND_RATE * (r - level)
-            if not (level > 0.0 and r > LAND_JUMP * level):
-                continue
-        best = -1  # the finger that explains the block best
         for q in range(n_q):
             state[c, e + q] = _residual(ly, lq, lz, lr, sensed, c, q)
-            if q != f and (best < 0 or state[c, e + q] < state[c, e + best]):
-                best = q
-        ratio2 = LIFT_RATIO * LIFT_RATIO
-        if pick[c] != f:
-            if state[c, e + f] * ratio2 < state[c, e + best]:
-                state[c, S_FLAG] = 1.0
-        elif state[c, e + best] * ratio2 < state[c, e + f]:
-            # a landing: the observer reads through that finger's candidate from this block on,
-            # where its votes took half a window (the free tip's images on a loaded beam read its
-            # tip 20 % high), and the votes must go against it as long to take it back
-            _ldk.use_load(H, Hc, pick, c, best)
-            for q in range(n_q):
-                resid[c, 0, q] = 1.0 if q == f else 0.0
-            state[c, S_FLAG] = -1.0
+        lifted = True
+        for q in range(n_q):
+            if q != f and not (state[c, e + f] * LIFT_RATIO * LIFT_RATIO < state[c, e + q]):
+                lifted = False
+        if lifted:
+            state[c, S_FLAG] = 1.0
     for i in range(c_state.shape[1]):
         c_state[lifted_row, i] = max(state[c0 + c_index[0, i], S_FLAG], 0.0)
+
+
+@kernel
+def _landing(u_ref, u_acc, pf_g, scale, pick, H, Hc, resid, ly, lq, lz, lr, state, drive, sensed, c, f):
+    """Test channel ``c``, read through the free tip's candidate ``f``, for a landing: where the
+    free tip's residual jumps over its level (``LAND_JUMP``) on a held drive (``LAND_HELD``) and
+    a finger explains the block better by ``LIFT_RATIO``, the observer reads through that
+    finger's candidate from this block on (its votes took half a window, and the free tip's
+    images on a loaded beam read its tip up to 20 % high meanwhile), with the votes' smoothed
+    losses as if every vote had gone to it: they must go against it as long to take it back."""
+    n_t, n_q, n_seg = ly.shape[1], ly.shape[2], ly.shape[3]
+    level = state[c, S_FREE]
+    state[c, S_FREE] = 0.0
+    if not _drive_off(u_ref, u_acc, pf_g, scale, c, n_t, drive, lz) <= LAND_HELD:
+        return
+    r = _residual(ly, lq, lz, lr, sensed, c, f)
+    if not (r < math.inf):
+        return
+    state[c, S_FREE] = r if not (0.0 < level < r) else level + LAND_RATE * (r - level)
+    if not (level > 0.0 and r > LAND_JUMP * level):
+        return
+    e = S_LAST + n_seg
+    best = -1  # the finger that explains the block best
+    for q in range(n_q):
+        state[c, e + q] = _residual(ly, lq, lz, lr, sensed, c, q)
+        if q != f and (best < 0 or state[c, e + q] < state[c, e + best]):
+            best = q
+    if best >= 0 and state[c, e + best] * LIFT_RATIO * LIFT_RATIO < state[c, e + f]:
+        _ldk.use_load(H, Hc, pick, c, best)
+        for q in range(n_q):
+            resid[c, 0, q] = 1.0 if q == f else 0.0
+        state[c, S_FLAG] = -1.0
 
 
 @kernel
@@ -253,8 +276,10 @@ class LiftTest:
     observer : Observer
         Its candidates (one without a finger, one or more with), beam, front end and tones.
     channels : array_like of int, optional
-        The observer's channels to test (default all): those with a controlled tone (a lift-off's
-        flag is read where a tone has the release rule; a landing is told on every channel).
+        The observer's channels to test for a landing (default all): those with a controlled tone.
+    watched : array_like of int, optional
+        Those of them also tested for a lift-off (default all): those with a tone the release
+        rule watches (elsewhere the flag would be read by no one).
 
     Attributes
     ----------
@@ -265,7 +290,7 @@ class LiftTest:
     why : str
     """
 
-    def __init__(self, observer, channels=None):
+    def __init__(self, observer, channels=None, watched=None):
         ob = observer
         loads = ob.image_loads if ob.frontend is not None else ob.image_loads[:1]
         n_ch, n_t, n_seg, block = ob.n_channels, ob.n_tones, ob.n_seg, ob.block
@@ -282,6 +307,9 @@ class LiftTest:
         self.free = np.full(n_ch, -1, dtype=np.int64)
         self.free[np.arange(n_ch) if channels is None else np.asarray(channels, dtype=np.int64)] = \
             free[0] if self.active else -1
+        self.watch = np.zeros(n_ch, dtype=np.int64)
+        self.watch[np.arange(n_ch) if watched is None else np.asarray(watched, dtype=np.int64)] = 1
+        self.watch[self.free < 0] = 0
         self.state = np.zeros((n_ch, S_LAST + n_seg + n_q))
         if not self.active:
             return
@@ -313,6 +341,7 @@ class LiftTest:
 
         a = observer_args
         return dict(u_ref=a["u_ref"], u_acc=a["u_acc"], pf_g=a["pf_g"], scale=a["scale"], pick=a["pick"],
-                    H=a["H"], Hc=a["Hc"], resid=a["resid"], free=self.free, ly=self.ly, lq=self.lq, lz=self.lz,
-                    lr=self.lr, state=self.state, delay=a["delay"], head=a["head"], sensed=a["sensed"],
-                    c_index=controller.index, c_state=controller.state, lifted_row=LIFTED, c0=int(c0))
+                    H=a["H"], Hc=a["Hc"], resid=a["resid"], free=self.free, watch=self.watch, ly=self.ly,
+                    lq=self.lq, lz=self.lz, lr=self.lr, state=self.state, delay=a["delay"], head=a["head"],
+                    sensed=a["sensed"], c_index=controller.index, c_state=controller.state, lifted_row=LIFTED,
+                    c0=int(c0))
