@@ -163,8 +163,8 @@ def _synthetic(n_q=2, free=1, block=16):
     Hc = np.stack([np.full((1, 1, 2, 2, 2), q + 1.0) for q in range(n_q)], axis=2)  # (c, k, q, e, j, 2)
     drive = np.cos(th * m)[None]
     args = dict(u_ref=u_ref, u_acc=u_acc, pf_g=np.array([[[1.0, 0.0]]]), scale=np.ones(1),
-                pick=np.array([free]), H=H, Hc=Hc, resid=np.zeros((1, 3, n_q)), free=np.array([free]), watch=np.ones(1, dtype=np.int64), ly=ly,
-                lq=lq, lz=np.zeros((1, block, 2)), lr=np.zeros(block),
+                pick=np.array([free]), H=H, Hc=Hc, resid=np.zeros((1, 3, n_q)), free=np.array([free]),
+                watch=np.ones(1, dtype=np.int64), ly=ly, lq=lq, lz=np.zeros((1, block, 2)), lr=np.zeros(block),
                 state=np.zeros((1, S_LAST + 1 + n_q)), delay=drive[None], head=np.zeros(1, dtype=np.int64),
                 c_index=np.zeros((5, 1), dtype=np.int64), c_state=np.zeros((90, 1)), lifted_row=0, c0=0)
     return args, lambda y, ring=0.0: y * drive + ring * lq[0, :, 0]
