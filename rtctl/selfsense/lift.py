@@ -201,7 +201,7 @@ def _landing(u_ref, u_acc, pf_g, scale, pick, H, Hc, resid, ly, lq, lz, lr, stat
     e = S_LAST + n_seg
     best = -1  # the finger that explains the block best
     for q in range(n_q):
-        state[c, e + q] = _residual(ly, lq, lz, lr, sensed, c, q)
+        state[c, e + q] = r if q == f else _residual(ly, lq, lz, lr, sensed, c, q)
         if q != f and (best < 0 or state[c, e + q] < state[c, e + best]):
             best = q
     if best >= 0 and state[c, e + best] * LIFT_RATIO * LIFT_RATIO < state[c, e + f]:
